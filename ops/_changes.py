@@ -1,0 +1,226 @@
+"""From the change term to change masks in both grids (METHOD.md section 3, steps 4-5).
+
+The score of a pixel is ``|chi|``: the part of its residual that the warped and
+blurred reference cannot explain beyond the Huber knee ``lambda_chi / 2``.
+
+Thresholds are computed from histograms that tiles can add up, so that a
+mosaic gets one threshold for the whole image:
+
+- ``"noise"`` (default): ``k`` robust standard deviations of the registration
+  residual (``1.4826 * median |g - F w|``), never below ``floor``.  It adapts to
+  how well the capture could be registered and does not depend on what changed.
+- ``"kapur"``: Kapur's maximum-entropy threshold of the histogram of the non-zero
+  scores, as in the paper, never below ``floor``.  On captures whose changes have
+  very different contrasts it tends to split the changes themselves.
+- a number: a fixed score threshold.
+
+Pixels above ``hysteresis`` times the threshold that touch a pixel above it are
+kept too (this recovers the blurred borders of changed objects), then connected
+components smaller than ``min_area`` pixels are removed.
+"""
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from scipy.ndimage import maximum_filter
+
+from ._camera import pose_homographies
+from ._errors import ParameterError
+from ._threshold import clean_mask, hysteresis_mask, kapur_threshold_histogram
+
+__all__ = ["ChangeParams", "ScoreHistogram", "score_histogram", "change_threshold", "change_mask",
+           "changes_to_reference"]
+
+THRESHOLD_METHODS = ("noise", "kapur")
+_RESIDUAL_EDGES = np.concatenate([[0.0], np.geomspace(1e-6, 4.0, 1023)])
+_SCORE_EDGES = np.linspace(0.0, 2.0, 513)
+
+
+@dataclass(frozen=True)
+class ChangeParams:
+    """Tuning of change masks.
+
+    Attributes
+    ----------
+    threshold : {"noise", "kapur"} or float
+        How the score threshold is chosen (see the module docstring).
+    k : float
+        Robust standard deviations of the residual for ``"noise"``.
+    floor : float
+        Smallest automatic threshold, intensities in [0, 1].
+    min_area : int
+        Smallest connected change kept, in pixels.
+    hysteresis : float
+        Pixels above ``hysteresis * threshold`` connected to a changed pixel are
+        changed too; 1 disables it.
+    half_max_window : int
+        A changed pixel must also score at least ``half_max`` times the largest
+        score within this window (px): motion blur mixes a changed object with
+        its surroundings linearly, so about half its contrast marks where it
+        covers half a pixel, which is where the truth of a blurred change is
+        drawn.  Should exceed twice the blur length; 1 disables it.
+    half_max : float
+        That fraction; a little under one half because the score is the
+        residual less the Huber knee and object interiors are textured
+        (calibrated on synthetic pairs, see the benchmark).
+    """
+
+    threshold: object = "noise"
+    k: float = 6.0
+    floor: float = 0.05
+    min_area: int = 20
+    hysteresis: float = 0.5
+    half_max_window: int = 15
+    half_max: float = 0.42
+
+    def __post_init__(self):
+        t = self.threshold
+        if isinstance(t, str):
+            if t not in THRESHOLD_METHODS:
+                try:
+                    t = float(t)
+                except ValueError:
+                    raise ParameterError(f"threshold: expected one of {THRESHOLD_METHODS} or a number, got {t!r}") from None
+        elif not isinstance(t, (int, float)) or isinstance(t, bool):
+            raise ParameterError(f"threshold: expected one of {THRESHOLD_METHODS} or a number, got {t!r}")
+        if not isinstance(t, str) and not t > 0:
+            raise ParameterError(f"threshold: expected a positive number, got {t!r}")
+        object.__setattr__(self, "threshold", t if isinstance(t, str) else float(t))
+        if not 0 < self.hysteresis <= 1:
+            raise ParameterError(f"hysteresis: expected a fraction in (0, 1], got {self.hysteresis}")
+        if self.min_area < 0:
+            raise ParameterError(f"min_area: expected >= 0 pixels, got {self.min_area}")
+
+
+@dataclass(frozen=True)
+class ScoreHistogram:
+    """Histograms of ``|residual|`` and of non-zero scores; tiles add them up.
+
+    Attributes
+    ----------
+    residual : ndarray of int64, shape (1024,)
+        Counts of ``|g - F w|`` on log-spaced bins from 1e-6 to 4.
+    score : ndarray of int64, shape (512,)
+        Counts of non-zero ``|chi|`` on linear bins from 0 to 2.
+    """
+
+    residual: np.ndarray
+    score: np.ndarray
+
+    def __add__(self, other):
+        return ScoreHistogram(self.residual + other.residual, self.score + other.score)
+
+
+def score_histogram(residual, score, valid):
+    """Histograms of one window (tile) for :func:`change_threshold`.
+
+    Parameters
+    ----------
+    residual, score : ndarray, shape (H, W)
+        ``g - F w`` and ``|chi|``.
+    valid : ndarray of bool, shape (H, W)
+    """
+    r = np.abs(residual[valid]).astype(np.float64)
+    c = score[valid].astype(np.float64)
+    c = c[c > 0]
+    return ScoreHistogram(np.histogram(np.clip(r, 0, 4.0), _RESIDUAL_EDGES)[0].astype(np.int64),
+                          np.histogram(np.clip(c, 0, 2.0), _SCORE_EDGES)[0].astype(np.int64))
+
+
+def change_threshold(histogram, *, params=ChangeParams()):
+    """Score threshold of :class:`ChangeParams` from (summed) histograms.
+
+    Returns
+    -------
+    float
+        In score units (intensities in [0, 1]).
+    """
+    if not isinstance(params.threshold, str):
+        return float(params.threshold)
+    if params.threshold == "kapur":
+        t = kapur_threshold_histogram(histogram.score, _SCORE_EDGES)
+        return float(max(t if np.isfinite(t) else params.floor, params.floor))
+    counts = histogram.residual
+    total = counts.sum()
+    if total == 0:
+        return float(params.floor)
+    median_bin = int(np.searchsorted(np.cumsum(counts), 0.5 * total))
+    median = float(_RESIDUAL_EDGES[median_bin + 1])
+    return float(max(params.k * 1.4826 * median, params.floor))
+
+
+def change_mask(score, threshold, *, params=ChangeParams()):
+    """Boolean change mask of a score image.
+
+    Parameters
+    ----------
+    score : ndarray, shape (H, W)
+        ``|chi|``, 0 where nothing is known.
+    threshold : float
+        From :func:`change_threshold`.
+
+    Returns
+    -------
+    ndarray of bool, shape (H, W)
+    """
+    score = np.nan_to_num(np.asarray(score, dtype=np.float32))
+    if params.hysteresis < 1:
+        mask = hysteresis_mask(score, low=params.hysteresis * threshold, high=threshold)
+    else:
+        mask = score > threshold
+    if params.half_max_window > 1:
+        mask &= score >= params.half_max * maximum_filter(score, size=params.half_max_window)
+    return clean_mask(mask, min_area=params.min_area)
+
+
+@numba.njit(nogil=True, cache=True)
+def _lookup(mask, hom, ref_shape, ref_origin, dist_origin, iterations):
+    out = np.zeros(ref_shape, dtype=np.uint8)
+    hd, wd = mask.shape
+    for v in range(ref_shape[0]):
+        yg = v + ref_origin[0]
+        for u in range(ref_shape[1]):
+            xg = u + ref_origin[1]
+            row = yg - dist_origin[0]
+            xs = 0.0
+            for _ in range(iterations):
+                ri = min(max(int(round(row)), 0), hd - 1)
+                h = hom[ri]
+                den = h[2, 0] * xg + h[2, 1] * yg + h[2, 2]
+                xs = (h[0, 0] * xg + h[0, 1] * yg + h[0, 2]) / den
+                row = (h[1, 0] * xg + h[1, 1] * yg + h[1, 2]) / den - dist_origin[0]
+            col = xs - dist_origin[1]
+            ri, ci = int(round(row)), int(round(col))
+            if 0 <= ri < hd and 0 <= ci < wd:
+                out[v, u] = mask[ri, ci]
+    return out
+
+
+def changes_to_reference(mask, trajectory, *, axes, camera, reference_shape, reference_origin_yx=(0, 0),
+                         distorted_origin_yx=(0, 0), iterations=4):
+    """Mark the reference pixels that the estimated poses carry onto changed pixels.
+
+    Each reference pixel is carried forward by the pose of the row it lands in,
+    found by a fixed-point iteration (a rolling-shutter row depends on where the
+    point lands), and takes the mask value there.
+
+    Parameters
+    ----------
+    mask : ndarray of bool, shape (H, W)
+        Changes in the distorted grid.
+    trajectory : ndarray, shape (H, D)
+        Per-row centroid poses over ``axes`` (global pose coordinates).
+    camera : Camera
+        Intrinsics of the whole image.
+    reference_shape : tuple of int
+        (Hr, Wr) of the reference window to fill.
+
+    Returns
+    -------
+    ndarray of uint8, shape reference_shape
+    """
+    hom = pose_homographies(np.nan_to_num(trajectory), camera, axes=axes)
+    return _lookup(np.asarray(mask, dtype=np.uint8), np.ascontiguousarray(hom), tuple(int(v) for v in reference_shape),
+                   np.asarray(reference_origin_yx, dtype=np.float64), np.asarray(distorted_origin_yx, dtype=np.float64),
+                   int(iterations))

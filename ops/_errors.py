@@ -1,0 +1,23 @@
+"""The one root error class of rsmb and its few subclasses.
+
+Callers catch :class:`RSMBError` for anything raised on purpose by the project,
+or the builtin base (``ValueError``, ``OSError``) they already handle.
+"""
+
+__all__ = ["RSMBError", "InputError", "ParameterError"]
+
+
+class RSMBError(Exception):
+    """Root of every error raised on purpose by rsmb."""
+
+
+class InputError(RSMBError, ValueError):
+    """An input file or array is unusable (unreadable, empty, constant, NaN, wrong size).
+
+    The message names the file (or array) and the problem in one line.
+    """
+
+
+class ParameterError(RSMBError, ValueError):
+    """A parameter has a value outside what is allowed; the message names the
+    parameter, what was expected and what was given."""

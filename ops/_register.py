@@ -1,0 +1,496 @@
+"""Per-row registration of a distorted capture against a reference (METHOD.md section 3).
+
+The trajectory starts at an informative block of rows near the middle of the
+capture, found by a cheap correlation search over a wide pose range and refined
+by a joint solve of eq. 13 for the block; it then propagates outwards, row by
+row, each row searching ``N(c, b, s)`` around the centroid of its solved
+neighbour and warm-started from the neighbour's weights.  Homogeneous rows are
+not trusted for the trajectory: their centroid is interpolated and they are
+solved afterwards around it.
+"""
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ._camera import POSE_AXES, Camera, full_poses
+from ._errors import ParameterError
+from ._posespace import PoseSpace
+from ._rowsolve import _build_row, _gather_row, _remap_rows, _solve_huber_nn, _synthesize
+
+__all__ = ["RegistrationParams", "Registration", "register"]
+
+
+@dataclass(frozen=True)
+class RegistrationParams:
+    """Tuning of :func:`register`; units are those of :data:`ops.AXIS_UNITS`.
+
+    Attributes
+    ----------
+    axes : tuple of str
+        Pose axes searched.
+    half_width, step : tuple of float
+        Row neighbourhood ``N(c, b, s)`` around the neighbour's centroid
+        (the paper's tx, ty N(c, 3, 1) px and rz N(c, 2, 0.5) deg by default).
+    search : tuple of float
+        Largest motion the wide initial search covers, per axis (+-).
+    shutter : {"rolling", "global"}
+        "global" solves one weight vector for every row.
+    lambda_w, lambda_chi : float
+        Weights of ``||w||_1`` and ``||chi||_1`` in eq. 13, intensities in [0, 1].
+        ``lambda_chi / 2`` is the residual above which a pixel counts as change.
+    block_rows : int
+        Rows solved jointly to start the trajectory (one row alone is ambiguous).
+    homogeneous : float
+        A row whose mean absolute horizontal gradient is below this fraction of
+        the median row's is homogeneous (its centroid is interpolated).
+    adapt : bool
+        Widen the row neighbourhood to the blur extent found in the start block.
+    tol : float
+        Relative KKT tolerance of the row solver.
+    max_outer, max_add : int
+        Row solver limits: outer iterations, poses added to the working set per
+        iteration.
+    """
+
+    axes: tuple = ("tx", "ty", "rz")
+    half_width: tuple = (3.0, 3.0, 2.0)
+    step: tuple = (1.0, 1.0, 0.5)
+    search: tuple = (20.0, 20.0, 3.0)
+    shutter: str = "rolling"
+    lambda_w: float = 1e-3
+    lambda_chi: float = 0.02
+    block_rows: int = 7
+    homogeneous: float = 0.2
+    adapt: bool = True
+    tol: float = 1e-6
+    max_outer: int = 100
+    max_add: int = 8
+
+    def __post_init__(self):
+        space = PoseSpace(self.axes, self.half_width, self.step)  # validates
+        object.__setattr__(self, "axes", space.axes)
+        object.__setattr__(self, "half_width", space.half_width)
+        object.__setattr__(self, "step", space.step)
+        search = tuple(float(v) for v in np.broadcast_to(self.search, len(space.axes)))
+        object.__setattr__(self, "search", search)
+        if self.shutter not in ("rolling", "global"):
+            raise ParameterError(f"shutter: expected 'rolling' or 'global', got {self.shutter!r}")
+        if not (self.lambda_w >= 0 and self.lambda_chi > 0):
+            raise ParameterError(f"lambda_w >= 0 and lambda_chi > 0 expected, got {self.lambda_w}, {self.lambda_chi}")
+
+    @property
+    def space(self):
+        return PoseSpace(self.axes, self.half_width, self.step)
+
+
+@dataclass
+class Registration:
+    """Result of :func:`register` for a distorted window of shape (H, W).
+
+    Attributes
+    ----------
+    registered : ndarray, shape (H, W), float32
+        The reference warped and blurred to match the capture (``F_i w_i``);
+        NaN where a pose sampled outside the reference.
+    chi : ndarray, shape (H, W), float32
+        Signed change term of eq. 13 (0 where invalid).
+    valid : ndarray, shape (H, W), bool
+        Pixels whose every pose sampled valid reference data.
+    trajectory : ndarray, shape (H, D), float64
+        Per-row centroid pose over ``axes`` in global pose coordinates.
+    row_gain : ndarray, shape (H,)
+        ``||w_i||_1`` per row (the illumination gain seen by that row).
+    row_state : ndarray, shape (H,), uint8
+        1 solved, 2 homogeneous (centroid interpolated), 3 failed (no fit).
+    axes : tuple of str
+    timings : dict
+    """
+
+    registered: np.ndarray
+    chi: np.ndarray
+    valid: np.ndarray
+    trajectory: np.ndarray
+    row_gain: np.ndarray
+    row_state: np.ndarray
+    axes: tuple
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def gain(self):
+        """Illumination gain of the window: median ``||w_i||_1`` of solved rows."""
+        good = self.row_state == 1
+        return float(np.median(self.row_gain[good])) if good.any() else float("nan")
+
+
+class _RowProblem:
+    """Builds ``F_i`` for rows of the distorted window against the reference
+    window, in the reference window's pixel frame.
+
+    When tx and ty are searched on whole-pixel steps, the reference is warped
+    once per distinct value of the other axes (lazily, a few per window) and
+    ``F_i`` is gathered from those images by integer shifts: exact, and far
+    cheaper than resampling every pose of every row.
+    """
+
+    def __init__(self, reference, distorted, dist_valid, camera, ref_origin, dist_origin, axes, steps):
+        self.ref = reference
+        self.dist = distorted
+        self.dist_valid = dist_valid
+        self.focal = float(camera.focal)
+        self.cx = camera.center_xy[0] - ref_origin[1]
+        self.cy = camera.center_xy[1] - ref_origin[0]
+        self.dy = int(dist_origin[0] - ref_origin[0])
+        self.dx = int(dist_origin[1] - ref_origin[1])
+        self.axes = axes
+        self.width = distorted.shape[1]
+        self.steps = np.asarray(steps, dtype=np.float64)
+        shift_axes = [a for a in ("tx", "ty") if a in axes]
+        whole = all(float(self.steps[axes.index(a)]).is_integer() for a in shift_axes)
+        self.gather = whole
+        self.other = [d for d, a in enumerate(axes) if a not in ("tx", "ty")]
+        self.slots = {}
+        self.stack = None
+
+    def _slot(self, key, index):
+        slot = self.slots.get(key)
+        if slot is None:
+            slot = len(self.slots)
+            if self.stack is None or slot == self.stack.shape[0]:
+                grow = np.empty((max(8, 2 * slot),) + self.ref.shape, dtype=np.float32)
+                if self.stack is not None:
+                    grow[:slot] = self.stack
+                self.stack = grow
+            pose = np.zeros(len(self.axes))
+            pose[self.other] = np.asarray(index, dtype=np.float64)[self.other] * self.steps[self.other]
+            poses = np.broadcast_to(full_poses(pose, self.axes), (self.ref.shape[0], 1, 6)).copy()
+            image, valid = _remap_rows(self.ref, poses, self.focal, self.cx, self.cy, self.ref.shape[1], 0.0, 0.0)
+            image[valid == 0] = np.nan
+            self.stack[slot] = image
+            self.slots[key] = slot
+        return slot
+
+    def build(self, rows, index, poses):
+        """A (K, len(rows) * W) float32 and g (N,) float64 with invalid pixels
+        zeroed, plus valid (N,) bool, for poses on lattice ``index`` (K, D)."""
+        k, n = poses.shape[0], self.width
+        a = np.empty((k, len(rows) * n), dtype=np.float32)
+        valid = np.empty(len(rows) * n, dtype=bool)
+        buf = np.empty((k, n), dtype=np.float32)
+        if self.gather:
+            keys, inverse = np.unique(index[:, self.other], axis=0, return_inverse=True)
+            first = np.unique(inverse.ravel(), return_index=True)[1]
+            slot = np.array([self._slot(tuple(keys[u]), index[f]) for u, f in enumerate(first)],
+                            dtype=np.int64)[inverse.ravel()]
+            shift_x = np.rint(poses[:, self.axes.index("tx")]).astype(np.int64) if "tx" in self.axes else np.zeros(k, np.int64)
+            shift_y = np.rint(poses[:, self.axes.index("ty")]).astype(np.int64) if "ty" in self.axes else np.zeros(k, np.int64)
+        else:
+            poses6 = full_poses(poses, self.axes)
+        for q, i in enumerate(rows):
+            if self.gather:
+                v = _gather_row(self.stack, slot, shift_y, shift_x, int(i + self.dy), self.dx, buf)
+            else:
+                v = _build_row(self.ref, float(i + self.dy), float(self.dx), poses6, self.focal, self.cx, self.cy, buf)
+            a[:, q * n:(q + 1) * n] = buf
+            valid[q * n:(q + 1) * n] = (v != 0) & self.dist_valid[i]
+        a[:, ~valid] = 0.0
+        g = np.where(valid, self.dist[rows].ravel(), 0.0).astype(np.float64)
+        return a, g, valid
+
+
+def _shift_weights(w, counts, delta):
+    """Weights on a grid moved by ``delta`` lattice steps: new[o] = old[o + delta]."""
+    old = w.reshape(counts)
+    new = np.zeros_like(old)
+    src, dst = [], []
+    for n, d in zip(counts, delta):
+        d = int(d)
+        if abs(d) >= n:
+            return new.ravel()
+        src.append(slice(max(d, 0), n + min(d, 0)))
+        dst.append(slice(max(-d, 0), n - max(d, 0)))
+    new[tuple(dst)] = old[tuple(src)]
+    return new.ravel()
+
+
+def _row_energy(distorted, valid):
+    grad = np.abs(np.diff(distorted, axis=1))
+    ok = valid[:, 1:] & valid[:, :-1]
+    count = ok.sum(axis=1)
+    return np.where(count > 0, (grad * ok).sum(axis=1) / np.maximum(count, 1), 0.0)
+
+
+def _gradients(image):
+    """Smoothed x and y derivatives, float32: correlating these rather than
+    intensities keeps large changed objects from dominating the score."""
+    image = cv2.GaussianBlur(np.nan_to_num(image).astype(np.float32), (0, 0), 1.0)
+    return cv2.Sobel(image, cv2.CV_32F, 1, 0), cv2.Sobel(image, cv2.CV_32F, 0, 1)
+
+
+def _coarse_search(problem, params, rows):
+    """Wide initial pose of a band of rows: for each in-plane rotation on a
+    coarse grid, the best translation by normalised cross-correlation of image
+    gradients (invariant to gain, robust to changed objects)."""
+    axes = params.axes
+    search = dict(zip(axes, params.search))
+    step = dict(zip(axes, params.step))
+    margin_x = int(np.ceil(search.get("tx", 0.0))) + 1
+    margin_y = int(np.ceil(search.get("ty", 0.0))) + 1
+    r0, r1 = rows[0], rows[-1] + 1
+    width = problem.width
+    if width - 2 * margin_x < 16:
+        return np.zeros(len(axes))
+    pad = 4
+    lo, hi = max(r0 - pad, 0), min(r1 + pad, problem.dist.shape[0])
+    templates = [t[r0 - lo:t.shape[0] - (hi - r1), margin_x:width - margin_x].copy()
+                 for t in _gradients(problem.dist[lo:hi])]
+    if min(t.std() for t in templates) == 0:
+        return np.zeros(len(axes))
+    rz_values = [0.0]
+    if "rz" in axes and search["rz"] > 0:
+        n = int(np.floor(search["rz"] / step["rz"]))
+        rz_values = list(np.arange(-n, n + 1) * step["rz"])
+    band = np.arange(r0 - margin_y, r1 + margin_y)
+    best = (-np.inf, 0.0, 0.0, 0.0)
+    buf = np.empty((1, width), dtype=np.float32)
+    for rz in rz_values:
+        pose = full_poses(np.array([[rz]]), ("rz",))
+        img = np.empty((band.size, width), dtype=np.float32)
+        for q, i in enumerate(band):
+            _build_row(problem.ref, float(i + problem.dy), float(problem.dx), pose, problem.focal,
+                       problem.cx, problem.cy, buf)
+            img[q] = buf[0]
+        score = sum(cv2.matchTemplate(i, t, cv2.TM_CCOEFF_NORMED) for i, t in zip(_gradients(img), templates))
+        _, peak, _, loc = cv2.minMaxLoc(score)
+        if peak > best[0]:
+            best = (peak, margin_x - loc[0], margin_y - loc[1], rz)
+    _, tx, ty, rz = best
+    values = {"tx": tx, "ty": ty, "rz": rz}
+    return np.array([values.get(a, 0.0) if a in ("tx", "ty", "rz") else 0.0 for a in axes])
+
+
+class _Solver:
+    """Solves rows on lattice grids and keeps per-row weights."""
+
+    def __init__(self, problem, params):
+        self.problem = problem
+        self.params = params
+        self.delta = 0.5 * params.lambda_chi
+
+    def solve(self, rows, space, center, w0=None):
+        index, poses = space.grid(center)
+        a, g, valid = self.problem.build(rows, index, poses)
+        w = np.zeros(len(poses)) if w0 is None else w0.copy()
+        _solve_huber_nn(a, g, w, self.params.lambda_w, self.delta, self.params.tol, self.params.max_outer,
+                        self.params.max_add)
+        return index, poses, w, a, valid
+
+
+def _centroid(poses, w):
+    total = w.sum()
+    return (w @ poses) / total if total > 0 else None
+
+
+def _spread(poses, w, centroid, mass=0.9):
+    """Distance per axis from the centroid within which ``mass`` of the weight lies
+    (the blur extent of the block, robust to a few stray small weights)."""
+    out = np.zeros(poses.shape[1])
+    for d in range(poses.shape[1]):
+        dist = np.abs(poses[:, d] - centroid[d])
+        order = np.argsort(dist)
+        cum = np.cumsum(w[order])
+        out[d] = dist[order][min(np.searchsorted(cum, mass * cum[-1]), len(cum) - 1)]
+    return out
+
+
+def register(reference, distorted, *, camera=None, params=None, reference_origin_yx=(0, 0),
+             distorted_origin_yx=(0, 0), reference_valid=None, distorted_valid=None):
+    """Register a distorted capture against a reference, row by row (eq. 13).
+
+    Parameters
+    ----------
+    reference : ndarray, shape (Hr, Wr), float32 in [0, 1]
+        Reference window (may be larger than the distorted one: a halo).
+    distorted : ndarray, shape (H, W), float32 in [0, 1]
+        Captured window.
+    camera : Camera, optional
+        Intrinsics of the *whole* image, default that of ``distorted``'s shape.
+    params : RegistrationParams, optional
+    reference_origin_yx, distorted_origin_yx : tuple of int
+        Position of each window's pixel (0, 0) in the whole image.
+    reference_valid, distorted_valid : ndarray of bool, optional
+        False at nodata pixels.
+
+    Returns
+    -------
+    Registration
+    """
+    import time
+
+    params = params or RegistrationParams()
+    camera = camera or Camera.for_shape(distorted.shape)
+    ref = np.array(reference, dtype=np.float32)
+    if reference_valid is not None:
+        ref[~np.asarray(reference_valid, bool)] = np.nan
+    dist = np.asarray(distorted, dtype=np.float32)
+    dvalid = np.ones(dist.shape, bool) if distorted_valid is None else np.asarray(distorted_valid, bool)
+    problem = _RowProblem(ref, dist, dvalid, camera, reference_origin_yx, distorted_origin_yx, params.axes, params.step)
+    solver = _Solver(problem, params)
+    t0 = time.perf_counter()
+    height, width = dist.shape
+    energy = _row_energy(dist, dvalid)
+    informative = energy >= params.homogeneous * np.median(energy[energy > 0]) if (energy > 0).any() else energy > 0
+    out = _Outputs(height, width, len(params.axes))
+    mid = _start_row(informative, height)
+    band = np.arange(max(0, mid - 16), min(height, mid + 16))
+    center = _coarse_search(problem, params, band)
+    t1 = time.perf_counter()
+    if params.shutter == "global":
+        _register_global(solver, center, informative, out)
+    else:
+        _register_rolling(solver, center, informative, mid, out)
+    t2 = time.perf_counter()
+    timings = {"coarse_search_s": t1 - t0, "rows_s": t2 - t1}
+    return Registration(out.registered, out.chi, out.valid, out.trajectory, out.row_gain, out.row_state,
+                        params.axes, timings)
+
+
+class _Outputs:
+    def __init__(self, height, width, dims):
+        self.registered = np.full((height, width), np.nan, dtype=np.float32)
+        self.chi = np.zeros((height, width), dtype=np.float32)
+        self.valid = np.zeros((height, width), dtype=bool)
+        self.trajectory = np.full((height, dims), np.nan)
+        self.row_gain = np.zeros(height)
+        self.row_state = np.zeros(height, dtype=np.uint8)
+
+    def store(self, row, w, a, valid, g_row, delta):
+        n = g_row.shape[0]
+        reg = np.empty(n)
+        _synthesize(a, w, reg)
+        r = g_row - reg
+        chi = np.sign(r) * np.maximum(np.abs(r) - delta, 0.0)
+        self.registered[row] = np.where(valid, reg, np.nan)
+        self.chi[row] = np.where(valid, chi, 0.0)
+        self.valid[row] = valid
+        self.row_gain[row] = w.sum()
+
+
+def _start_row(informative, height):
+    """The informative row nearest the middle."""
+    rows = np.nonzero(informative)[0]
+    if rows.size == 0:
+        return height // 2
+    return int(rows[np.argmin(np.abs(rows - height // 2))])
+
+
+def _block_rows(informative, mid, count, height):
+    rows = np.nonzero(informative)[0]
+    if rows.size == 0:
+        rows = np.arange(height)
+    near = rows[np.argsort(np.abs(rows - mid), kind="stable")][: 4 * count]
+    near = np.sort(near)
+    pick = np.linspace(0, near.size - 1, min(count, near.size)).round().astype(int)
+    return near[np.unique(pick)]
+
+
+def _refine_start(solver, center, rows):
+    """Joint solve of a block of rows around the coarse pose; returns the block's
+    centroid and the blur extent per axis."""
+    params = solver.params
+    steps = np.asarray(params.step)
+    coarse_hw = np.maximum(np.asarray(params.half_width) + steps, 4 * steps)
+    space = params.space.widened(tuple(coarse_hw))
+    for _ in range(2):
+        _, poses, w, _, _ = solver.solve(rows, space, center)
+        c = _centroid(poses, w)
+        if c is None:
+            return center, np.zeros_like(center)
+        center = c
+    return center, _spread(poses, w, center)
+
+
+def _adapted_half_width(space, spread):
+    """Half-widths that cover a blur of extent ``spread`` (per axis) plus one step,
+    never narrower than ``space``'s."""
+    steps = np.asarray(space.step)
+    need = np.ceil(spread / steps - 1e-9) * steps + steps
+    return tuple(np.maximum(space.half_width, need))
+
+
+def _register_rolling(solver, center, informative, mid, out):
+    params = solver.params
+    height = out.row_gain.shape[0]
+    block = _block_rows(informative, mid, params.block_rows, height)
+    center, _ = _refine_start(solver, center, block)
+    space = params.space
+    if params.adapt:
+        # the blur extent of the middle row, on a grid one step wider
+        wide = space.widened(tuple(np.asarray(space.half_width) + np.asarray(space.step)))
+        _, poses, w, _, _ = solver.solve([mid], wide, center)
+        c = _centroid(poses, w)
+        if c is not None:
+            space = space.widened(_adapted_half_width(space, _spread(poses, w, c)))
+    counts = space.counts
+    weights = {}
+    state = out.row_state
+
+    def solve_row(i, c, neighbour):
+        w0 = None
+        if neighbour is not None and neighbour in weights:
+            idx_n, w_n = weights[neighbour]
+            w0 = _shift_weights(w_n, counts, space.snap(c) - idx_n)
+        index, poses, w, a, valid = solver.solve([i], space, c, w0)
+        weights[i] = (space.snap(c), w)
+        out.store(i, w, a, valid, solver.problem.dist[i].astype(np.float64), solver.delta)
+        return _centroid(poses, w)
+
+    c_mid = solve_row(mid, center, None)
+    if c_mid is None:
+        c_mid = center
+    out.trajectory[mid] = c_mid
+    state[mid] = 1
+    for direction in (-1, 1):
+        c_prev, prev = c_mid, mid
+        for i in range(mid + direction, height if direction > 0 else -1, direction):
+            if not informative[i]:
+                state[i] = 2
+                continue
+            c = solve_row(i, c_prev, prev)
+            if c is None or not out.valid[i].any():
+                state[i] = 3
+                continue
+            out.trajectory[i] = c
+            state[i] = 1
+            c_prev, prev = c, i
+    good = state == 1
+    rows = np.arange(height)
+    for d in range(out.trajectory.shape[1]):
+        out.trajectory[~good, d] = np.interp(rows[~good], rows[good], out.trajectory[good, d])
+    solved = np.nonzero(good)[0]
+    for i in np.nonzero(~good)[0]:
+        nearest = int(solved[np.argmin(np.abs(solved - i))])
+        solve_row(i, out.trajectory[i], nearest)
+
+
+def _register_global(solver, center, informative, out):
+    """One weight vector for every row (global shutter)."""
+    params = solver.params
+    height = out.row_gain.shape[0]
+    rows = np.nonzero(informative)[0]
+    if rows.size == 0:
+        rows = np.arange(height)
+    rows = rows[np.linspace(0, rows.size - 1, min(32, rows.size)).round().astype(int)]
+    rows = np.unique(rows)
+    center, spread = _refine_start(solver, center, rows)
+    space = params.space.widened(_adapted_half_width(params.space, spread))
+    index, poses, w, _, _ = solver.solve(rows, space, center)
+    c = _centroid(poses, w)
+    keep = w > 0
+    index, poses, w = index[keep], poses[keep], w[keep]
+    for i in range(height):
+        a, g, valid = solver.problem.build([i], index, poses)
+        out.store(i, w, a, valid, solver.problem.dist[i].astype(np.float64), solver.delta)
+        out.trajectory[i] = c if c is not None else center
+        out.row_state[i] = 1 if informative[i] else 2

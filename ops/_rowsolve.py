@@ -1,0 +1,497 @@
+"""The fast per-row solver of eq. 13 (numba kernels, float32 data, float64 sums).
+
+For a fixed pose weight vector ``w`` the best change term is the soft-threshold of
+the residual (METHOD.md section 2), so eq. 13 is exactly
+
+    minimise_{w >= 0}  sum_j rho(g_j - a_j . w) + lambda_w * sum_k w_k
+
+with the Huber function ``rho(r) = r^2`` for ``|r| <= d`` and ``2 d |r| - d^2``
+otherwise, ``d = lambda_chi / 2``.  The solver is a primal active-set Newton
+method for this piecewise-quadratic problem:
+
+1. fix the partition of pixels into inliers (``|r| <= d``) and outliers and the
+   working set of poses (those with ``w > 0`` plus the worst KKT violators);
+2. solve the resulting bound-constrained quadratic exactly (Lawson-Hanson active
+   set with a Cholesky factorisation of the small Gram matrix);
+3. take an exact line search on the true Huber objective towards that point;
+4. stop when the KKT conditions of the full problem hold to ``tol``.
+
+Every step decreases the objective and the partition of a convex piecewise
+quadratic is finite, so the method terminates at the exact optimum up to
+rounding.  The matrix ``F_i`` is built on the fly from bilinear warps of the
+reference window and never stored for more than one row.
+"""
+
+import math
+
+import numba
+import numpy as np
+
+__all__ = []
+
+_JIT = dict(nogil=True, cache=True)
+
+
+@numba.njit(**_JIT)
+def _inverse_map(pose6, focal, cx, cy):
+    """Coefficients of the sampling map of one pose (observed -> reference).
+
+    Returns (m, tx, ty, scale) with m the 3x3 matrix K R^T K^-1 (row-major, 9).
+    """
+    tx, ty, s = pose6[0], pose6[1], pose6[2]
+    ax, ay, az = math.radians(pose6[3]), math.radians(pose6[4]), math.radians(pose6[5])
+    cxr, sxr, cyr, syr, czr, szr = math.cos(ax), math.sin(ax), math.cos(ay), math.sin(ay), math.cos(az), math.sin(az)
+    # R = Rz Ry Rx (see ops._camera._rotations)
+    r = np.empty((3, 3))
+    # Ry Rx
+    a00, a01, a02 = cyr, -syr * sxr, syr * cxr
+    a10, a11, a12 = 0.0, cxr, sxr
+    a20, a21, a22 = -syr, -cyr * sxr, cyr * cxr
+    r[0, 0] = czr * a00 - szr * a10
+    r[0, 1] = czr * a01 - szr * a11
+    r[0, 2] = czr * a02 - szr * a12
+    r[1, 0] = szr * a00 + czr * a10
+    r[1, 1] = szr * a01 + czr * a11
+    r[1, 2] = szr * a02 + czr * a12
+    r[2, 0], r[2, 1], r[2, 2] = a20, a21, a22
+    m = np.empty(9)
+    # K R^T K^-1
+    m[0], m[1], m[2] = r[0, 0], r[1, 0], r[2, 0] * focal
+    m[3], m[4], m[5] = r[0, 1], r[1, 1], r[2, 1] * focal
+    m[6], m[7], m[8] = r[0, 2] / focal, r[1, 2] / focal, r[2, 2]
+    return m, tx, ty, 1.0 + s
+
+
+@numba.njit(**_JIT)
+def _build_row(ref, y, x0, poses6, focal, cx, cy, out):
+    """Fill ``out`` (K, N) with row ``y`` of the reference warped by each pose.
+
+    ``ref`` (Hr, Wr) float32 may hold NaN for nodata.  ``y``, ``x0``, ``cx``,
+    ``cy`` are in the reference window's pixel frame.  Returns uint8 (N,) with 1
+    where every pose samples valid reference data; columns of invalid pixels are
+    set to zero.
+    """
+    k_count, n = out.shape
+    hr, wr = ref.shape
+    valid = np.ones(n, dtype=np.uint8)
+    for k in range(k_count):
+        m, tx, ty, sc = _inverse_map(poses6[k], focal, cx, cy)
+        uy = (y - cy - ty) / sc
+        # h = m @ (ux, uy, 1), ux = (x - cx - tx) / sc, linear in x
+        ux0 = (x0 - cx - tx) / sc
+        du = 1.0 / sc
+        h0 = m[0] * ux0 + m[1] * uy + m[2]
+        h1 = m[3] * ux0 + m[4] * uy + m[5]
+        h2 = m[6] * ux0 + m[7] * uy + m[8]
+        d0, d1, d2 = m[0] * du, m[3] * du, m[6] * du
+        for j in range(n):
+            inv = 1.0 / (h2 + j * d2)
+            u = (h0 + j * d0) * inv + cx
+            v = (h1 + j * d1) * inv + cy
+            if u >= 0.0 and v >= 0.0 and u <= wr - 1 and v <= hr - 1:
+                iu = min(int(u), wr - 2)
+                iv = min(int(v), hr - 2)
+                fu = u - iu
+                fv = v - iv
+                top = ref[iv, iu] * (1.0 - fu) + ref[iv, iu + 1] * fu
+                bot = ref[iv + 1, iu] * (1.0 - fu) + ref[iv + 1, iu + 1] * fu
+                val = top * (1.0 - fv) + bot * fv
+                if math.isnan(val):
+                    valid[j] = 0
+                    out[k, j] = 0.0
+                else:
+                    out[k, j] = val
+            else:
+                valid[j] = 0
+                out[k, j] = 0.0
+    for j in range(n):
+        if valid[j] == 0:
+            for k in range(k_count):
+                out[k, j] = 0.0
+    return valid
+
+
+@numba.njit(**_JIT)
+def _huber_value(r, delta):
+    a = abs(r)
+    if a <= delta:
+        return r * r
+    return 2.0 * delta * a - delta * delta
+
+
+@numba.njit(**_JIT)
+def _psi(r, delta):
+    if r > delta:
+        return 2.0 * delta
+    if r < -delta:
+        return -2.0 * delta
+    return 2.0 * r
+
+
+@numba.njit(**_JIT)
+def _objective(r, w, lam, delta):
+    total = 0.0
+    for j in range(r.shape[0]):
+        total += _huber_value(r[j], delta)
+    return total + lam * np.sum(w)
+
+
+@numba.njit(**_JIT)
+def _gradient(a, r, lam, delta, out):
+    k_count, n = a.shape
+    psi = np.empty(n)
+    for j in range(n):
+        psi[j] = _psi(r[j], delta)
+    for k in range(k_count):
+        acc = 0.0
+        for j in range(n):
+            acc += psi[j] * a[k, j]
+        out[k] = lam - acc
+
+
+@numba.njit(**_JIT)
+def _cholesky_solve(h, b, idx, m):
+    """Solve h[idx, idx] z = b[idx] (first m entries of idx) by Cholesky with a
+    tiny relative ridge; returns z (m,)."""
+    lmat = np.zeros((m, m))
+    scale = 0.0
+    for p in range(m):
+        scale = max(scale, h[idx[p], idx[p]])
+    ridge = 1e-12 * scale + 1e-300
+    for p in range(m):
+        for q in range(p + 1):
+            acc = h[idx[p], idx[q]]
+            for t in range(q):
+                acc -= lmat[p, t] * lmat[q, t]
+            if p == q:
+                acc += ridge
+                lmat[p, p] = math.sqrt(acc) if acc > 0.0 else math.sqrt(ridge)
+            else:
+                lmat[p, q] = acc / lmat[q, q]
+    z = np.empty(m)
+    for p in range(m):
+        acc = b[idx[p]]
+        for t in range(p):
+            acc -= lmat[p, t] * z[t]
+        z[p] = acc / lmat[p, p]
+    for p in range(m - 1, -1, -1):
+        acc = z[p]
+        for t in range(p + 1, m):
+            acc -= lmat[t, p] * z[t]
+        z[p] = acc / lmat[p, p]
+    return z
+
+
+@numba.njit(**_JIT)
+def _nnqp(h, b, x, tol):
+    """Lawson-Hanson active set for min x'Hx - 2b'x, x >= 0; x (feasible) is
+    updated in place."""
+    m = b.shape[0]
+    free = np.zeros(m, dtype=np.bool_)
+    for p in range(m):
+        free[p] = x[p] > 0.0
+    idx = np.empty(m, dtype=np.int64)
+    for _outer in range(3 * m + 10):
+        for _inner in range(3 * m + 10):
+            nf = 0
+            for p in range(m):
+                if free[p]:
+                    idx[nf] = p
+                    nf += 1
+            if nf == 0:
+                break
+            z = _cholesky_solve(h, b, idx, nf)
+            alpha = 1.0
+            blocked = -1
+            for q in range(nf):
+                if z[q] <= 0.0:
+                    p = idx[q]
+                    step = x[p] / (x[p] - z[q])
+                    if step < alpha:
+                        alpha = step
+                        blocked = p
+            for q in range(nf):
+                p = idx[q]
+                x[p] += alpha * (z[q] - x[p])
+            if blocked < 0:
+                break
+            x[blocked] = 0.0
+            for q in range(nf):
+                p = idx[q]
+                if x[p] <= 0.0:
+                    x[p] = 0.0
+                    free[p] = False
+        best, best_p = -tol, -1
+        for p in range(m):
+            if not free[p]:
+                g = -b[p]
+                for q in range(m):
+                    g += h[p, q] * x[q]
+                if g < best:
+                    best, best_p = g, p
+        if best_p < 0:
+            return
+        free[best_p] = True
+
+
+@numba.njit(**_JIT)
+def _line_search(r, e, slope_w, delta):
+    """Exact minimiser over t in [0, 1] of sum rho(r - t e) + t * slope_w."""
+
+    def dphi(t):
+        acc = slope_w
+        curv = 0.0
+        for j in range(r.shape[0]):
+            rj = r[j] - t * e[j]
+            acc -= _psi(rj, delta) * e[j]
+            if abs(rj) <= delta:
+                curv += 2.0 * e[j] * e[j]
+        return acc, curv
+
+    d1, _ = dphi(1.0)
+    if d1 <= 0.0:
+        return 1.0
+    lo, hi = 0.0, 1.0
+    t = 1.0
+    d, c = d1, 0.0
+    d0, c0 = dphi(0.0)
+    if d0 >= 0.0:
+        return 0.0
+    t, d, c = 0.0, d0, c0
+    for _ in range(60):
+        if d < 0.0:
+            lo = t
+        else:
+            hi = t
+        nt = t - d / c if c > 0.0 else 0.5 * (lo + hi)
+        if not (lo < nt < hi):
+            nt = 0.5 * (lo + hi)
+        if hi - lo < 1e-14:
+            break
+        t = nt
+        d, c = dphi(t)
+        if d == 0.0:
+            break
+    return t
+
+
+@numba.njit(**_JIT)
+def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
+    """Minimise sum rho(g - a' w) + lam sum w over w >= 0 (in place).
+
+    ``a`` (K, N) float32 with zero columns for invalid pixels, ``g`` (N,) with
+    zeros there.  Returns (objective, outer iterations, final KKT violation).
+    """
+    k_count, n = a.shape
+    r = np.empty(n)
+    for j in range(n):
+        r[j] = g[j]
+    for k in range(k_count):
+        if w[k] > 0.0:
+            for j in range(n):
+                r[j] -= w[k] * a[k, j]
+    grad = np.empty(k_count)
+    work = np.zeros(k_count, dtype=np.bool_)
+    part = np.full(n, 2, dtype=np.int8)
+    weight = np.empty(n)
+    lin = np.empty(n)
+    e = np.empty(n)
+    viol = np.inf
+    it = 0
+    for it in range(max_outer):
+        _gradient(a, r, lam, delta, grad)
+        obj = _objective(r, w, lam, delta)
+        viol = 0.0
+        for k in range(k_count):
+            v = abs(grad[k]) if w[k] > 0.0 else -grad[k]
+            viol = max(viol, v)
+        if viol <= tol_rel * max(obj, 1e-30):
+            return obj, it, viol
+        # working set: support plus the worst violators
+        for k in range(k_count):
+            work[k] = w[k] > 0.0
+        order = np.argsort(grad)
+        added = 0
+        for q in range(k_count):
+            k = order[q]
+            if grad[k] >= 0.0 or added >= max_add:
+                break
+            if not work[k]:
+                work[k] = True
+                added += 1
+        idx = np.nonzero(work)[0]
+        m = idx.shape[0]
+        # quadratic model of the current partition
+        # Newton model of the partition once it is stable; before that the
+        # half-quadratic majoriser (outlier curvature delta/|r|), which is
+        # bounded below whatever the partition
+        stable = True
+        for j in range(n):
+            side = 0
+            if r[j] > delta:
+                side = 1
+            elif r[j] < -delta:
+                side = -1
+            if side != part[j]:
+                stable = False
+                part[j] = side
+        h = np.zeros((m, m))
+        b = np.empty(m)
+        for j in range(n):
+            if part[j] == 0:
+                weight[j] = 1.0
+                lin[j] = g[j]
+            elif stable and it > 0:
+                weight[j] = 0.0
+                lin[j] = delta * part[j]
+            else:
+                weight[j] = delta / abs(r[j])
+                # majoriser delta r^2/|r0| about the current residual r0
+                lin[j] = weight[j] * g[j]
+        for p in range(m):
+            ap = a[idx[p]]
+            acc = 0.0
+            for j in range(n):
+                acc += ap[j] * lin[j]
+            b[p] = acc - 0.5 * lam
+            for q in range(p + 1):
+                aq = a[idx[q]]
+                acc = 0.0
+                for j in range(n):
+                    acc += weight[j] * ap[j] * aq[j]
+                h[p, q] = acc
+                h[q, p] = acc
+        x = np.empty(m)
+        for p in range(m):
+            x[p] = w[idx[p]]
+        _nnqp(h, b, x, 1e-3 * tol_rel * max(obj, 1e-30))
+        # direction and exact line search on the true objective
+        for j in range(n):
+            e[j] = 0.0
+        slope = 0.0
+        for p in range(m):
+            d = x[p] - w[idx[p]]
+            slope += lam * d
+            if d != 0.0:
+                ap = a[idx[p]]
+                for j in range(n):
+                    e[j] += d * ap[j]
+        t = _line_search(r, e, slope, delta)
+        if t <= 0.0:
+            return obj, it, viol
+        for p in range(m):
+            k = idx[p]
+            w[k] += t * (x[p] - w[k])
+            if w[k] < 0.0:
+                w[k] = 0.0
+        for j in range(n):
+            r[j] -= t * e[j]
+    return _objective(r, w, lam, delta), it, viol
+
+
+@numba.njit(**_JIT)
+def _synthesize(a, w, out):
+    """out (N,) = a' w, the registered (warped and blurred) row."""
+    k_count, n = a.shape
+    for j in range(n):
+        out[j] = 0.0
+    for k in range(k_count):
+        if w[k] > 0.0:
+            for j in range(n):
+                out[j] += w[k] * a[k, j]
+
+
+def solve_row_fast(F, g, *, lambda_w, lambda_chi, w0=None, tol=1e-7, max_outer=100, max_add=32):
+    """Fast exact solve of eq. 13 for one row (or a stacked block of rows).
+
+    Parameters
+    ----------
+    F : ndarray, shape (N, K)
+        Row of the reference warped by each of K poses (METHOD.md's ``F_i``).
+    g : ndarray, shape (N,)
+        Observed row, intensities in [0, 1].
+    lambda_w, lambda_chi : float
+        Weights of ``||w||_1`` and ``||chi||_1`` in eq. 13.
+    w0 : ndarray, shape (K,), optional
+        Warm start (non-negative).
+    tol : float
+        Relative KKT tolerance.
+
+    Returns
+    -------
+    w : ndarray, shape (K,), float64
+    chi : ndarray, shape (N,), float64
+        Optimal change term for ``w`` (soft-threshold of the residual).
+    objective : float
+        Value of eq. 13.
+    """
+    a = np.ascontiguousarray(np.asarray(F, dtype=np.float32).T)
+    g64 = np.asarray(g, dtype=np.float64)
+    w = np.zeros(a.shape[0]) if w0 is None else np.maximum(np.asarray(w0, dtype=np.float64), 0.0).copy()
+    delta = 0.5 * float(lambda_chi)
+    obj, _, _ = _solve_huber_nn(a, g64, w, float(lambda_w), delta, float(tol), int(max_outer), int(max_add))
+    r = g64 - a.T.astype(np.float64) @ w
+    chi = np.sign(r) * np.maximum(np.abs(r) - delta, 0.0)
+    return w, chi, float(obj)
+
+
+@numba.njit(**_JIT)
+def _remap_rows(src, poses, focal, cx, cy, width, oy, ox):
+    """Average over each row's pose samples of the warped source row.
+
+    ``poses`` (H, S, 6); ``cx``, ``cy`` the principal point in the source frame;
+    row ``i`` of the output is row ``i + oy`` of the source frame, column ``j``
+    is ``j + ox``.  Returns (image float32 (H, W), valid uint8 (H, W)).
+    """
+    h, s = poses.shape[0], poses.shape[1]
+    out = np.empty((h, width), dtype=np.float32)
+    valid = np.empty((h, width), dtype=np.uint8)
+    buf = np.empty((s, width), dtype=np.float32)
+    for i in range(h):
+        valid[i] = _build_row(src, i + oy, ox, poses[i], focal, cx, cy, buf)
+        for j in range(width):
+            acc = 0.0
+            for q in range(s):
+                acc += buf[q, j]
+            out[i, j] = acc / s
+    return out, valid
+
+
+@numba.njit(**_JIT)
+def _gather_row(stack, slot, shift_y, shift_x, y, x0, out):
+    """Fill ``out`` (K, N) from pre-warped images: pose k reads
+    ``stack[slot[k], y - shift_y[k], x0 + j - shift_x[k]]``.
+
+    This is exact for poses whose translation is a whole number of pixels: the
+    translation is applied last in the camera model, so a translated pose samples
+    the image warped by the rest of the pose at a shifted pixel.  NaN marks
+    invalid data.  Returns uint8 (N,) validity as :func:`_build_row`.
+    """
+    k_count, n = out.shape
+    hr, wr = stack.shape[1], stack.shape[2]
+    valid = np.ones(n, dtype=np.uint8)
+    for k in range(k_count):
+        r = y - shift_y[k]
+        c0 = x0 - shift_x[k]
+        if r < 0 or r >= hr:
+            for j in range(n):
+                valid[j] = 0
+            continue
+        img = stack[slot[k], r]
+        for j in range(n):
+            c = c0 + j
+            if c < 0 or c >= wr:
+                valid[j] = 0
+                out[k, j] = 0.0
+            else:
+                v = img[c]
+                if math.isnan(v):
+                    valid[j] = 0
+                    out[k, j] = 0.0
+                else:
+                    out[k, j] = v
+    for j in range(n):
+        if valid[j] == 0:
+            for k in range(k_count):
+                out[k, j] = 0.0
+    return valid

@@ -1,0 +1,248 @@
+"""Turning a change score (e.g. ``|chi|``, METHOD.md section 3 step 4) into a clean mask.
+
+- :func:`kapur_threshold`: Kapur, Sahoo & Wong (1985) maximum-entropy histogram threshold,
+  the threshold the paper applies to ``|chi|``.
+- :func:`clean_mask`: drop connected components (and fill holes) below a minimum area.
+- :func:`hysteresis_mask`: two-level threshold keeping weak pixels connected to strong ones.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from skimage.filters import apply_hysteresis_threshold
+from skimage.morphology import remove_small_holes, remove_small_objects
+
+from ops._errors import InputError, ParameterError
+
+__all__ = ["kapur_threshold", "clean_mask", "hysteresis_mask"]
+
+
+def _xlogx(p: np.ndarray) -> np.ndarray:
+    """Elementwise ``p * ln(p)`` with ``0 ln 0 = 0``, float64."""
+    out = np.zeros_like(p, dtype=np.float64)
+    pos = p > 0
+    out[pos] = p[pos] * np.log(p[pos])
+    return out
+
+
+def _kapur_entropy(hist: np.ndarray) -> np.ndarray:
+    """Total entropy ``H_A(t) + H_B(t)`` for every split ``t`` of a histogram.
+
+    Class A holds bins ``0..t``, class B bins ``t+1..B-1``. With ``P_t`` the cumulative
+    probability and ``S_t = sum_{i<=t} p_i ln p_i``:
+    ``H_A = ln P_t - S_t / P_t`` and ``H_B = ln(1 - P_t) - (S_tot - S_t) / (1 - P_t)``.
+    Splits leaving one class empty get ``-inf``. Returns shape (B - 1,) (t = 0..B-2).
+    """
+    p = hist.astype(np.float64) / float(hist.sum())
+    cum_p = np.cumsum(p)[:-1]
+    plogp = _xlogx(p)
+    cum_s = np.cumsum(plogp)[:-1]
+    s_tot = float(plogp.sum())
+    q = 1.0 - cum_p
+    ok = (cum_p > 0) & (q > 1e-12)
+    total = np.full(cum_p.shape, -np.inf)
+    pa, qb, sa = cum_p[ok], q[ok], cum_s[ok]
+    total[ok] = np.log(pa) - sa / pa + np.log(qb) - (s_tot - sa) / qb
+    return total
+
+
+def _plateau_centre(total: np.ndarray) -> tuple[int, int]:
+    """First and last index of the run of maxima that contains the first maximum.
+
+    Empty bins after a split leave the entropy unchanged, so the maximum is usually a
+    plateau spanning a gap of the histogram; the threshold goes to its middle.
+    """
+    best = float(np.max(total))
+    tol = 1e-12 * max(1.0, abs(best))
+    at_max = total >= best - tol
+    first = int(np.argmax(at_max))
+    run = np.flatnonzero(~at_max[first:])
+    last = first + (int(run[0]) - 1 if run.size else at_max.size - 1 - first)
+    return first, last
+
+
+def kapur_threshold(values, *, bins: int = 256, value_range=None) -> float:
+    """Maximum-entropy threshold of Kapur, Sahoo & Wong (1985).
+
+    The histogram of ``values`` is split into a low class (bins ``0..t``) and a high
+    class (bins ``t+1..``); the split maximising the sum of the two class entropies
+    ``H_A(t) + H_B(t)`` (each computed on the class-normalised histogram) is chosen.
+    This is the threshold applied to ``|chi|`` in METHOD.md section 3, step 4.
+
+    Parameters
+    ----------
+    values : array_like, any shape (flattened)
+        Scores, e.g. ``|chi|`` in image intensity units. Non-finite values (NaN,
+        +-inf, nodata already turned into NaN) are ignored.
+    bins : int, optional
+        Number of histogram bins, >= 2. Default 256.
+    value_range : (float, float), optional
+        ``(lo, hi)`` span of the histogram, in the units of ``values``. Values outside
+        it are clipped into the end bins (so a long tail still counts as "high").
+        Default: the finite minimum and maximum of ``values``.
+
+    Returns
+    -------
+    float
+        Threshold in the units of ``values``: pixels with ``values > threshold`` are the
+        high class. It is a histogram bin edge; when the optimum is a plateau (empty
+        bins between the classes) the middle of the plateau is returned. Degenerate
+        inputs return ``+inf`` ("nothing above"): no finite value, all values equal
+        (or within one bin), or a zero-width ``value_range``.
+
+    Raises
+    ------
+    ParameterError
+        If ``bins`` < 2 or ``value_range`` is not an increasing finite pair.
+
+    References
+    ----------
+    J. N. Kapur, P. K. Sahoo, A. K. C. Wong, "A new method for gray-level picture
+    thresholding using the entropy of the histogram", CVGIP 29(3), 1985.
+    """
+    if isinstance(bins, bool) or not isinstance(bins, (int, np.integer)) or bins < 2:
+        raise ParameterError(f"bins: expected an integer >= 2, got {bins!r}")
+    v = np.asarray(values, dtype=np.float64).ravel()
+    v = v[np.isfinite(v)]
+    if value_range is None:
+        if v.size == 0:
+            return math.inf
+        lo, hi = float(v.min()), float(v.max())
+    else:
+        try:
+            lo, hi = (float(x) for x in value_range)
+        except (TypeError, ValueError) as exc:
+            raise ParameterError(
+                f"value_range: expected a pair (lo, hi) of numbers, got {value_range!r}"
+            ) from exc
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+            raise ParameterError(
+                f"value_range: expected finite lo <= hi, got {value_range!r}"
+            )
+    if v.size == 0 or not hi > lo:
+        return math.inf
+    hist, edges = np.histogram(np.clip(v, lo, hi), bins=int(bins), range=(lo, hi))
+    return kapur_threshold_histogram(hist, edges)
+
+
+def kapur_threshold_histogram(hist, edges) -> float:
+    """:func:`kapur_threshold` of an already binned histogram.
+
+    Parameters
+    ----------
+    hist : ndarray, shape (B,)
+        Counts (for example summed over the tiles of a mosaic).
+    edges : ndarray, shape (B + 1,)
+        Bin edges in value units.
+
+    Returns
+    -------
+    float
+        A bin edge, or ``+inf`` when no split leaves two non-empty classes.
+    """
+    hist = np.asarray(hist, dtype=np.float64)
+    if hist.sum() <= 0:
+        return math.inf
+    total = _kapur_entropy(hist)
+    if not np.any(np.isfinite(total)):
+        # every value falls in one bin: no split has two non-empty classes
+        return math.inf
+    first, last = _plateau_centre(total)
+    return float(0.5 * (edges[first + 1] + edges[last + 1]))
+
+
+def _check_min_area(min_area) -> int:
+    if isinstance(min_area, bool) or not isinstance(min_area, (int, np.integer, float)):
+        raise ParameterError(f"min_area: expected a non-negative number of pixels, got {min_area!r}")
+    if not (min_area >= 0 and math.isfinite(min_area)):
+        raise ParameterError(f"min_area: expected a non-negative number of pixels, got {min_area!r}")
+    return int(math.ceil(min_area))
+
+
+def clean_mask(
+    mask, *, min_area: int, connectivity: int = 2, fill_holes: bool = True
+) -> np.ndarray:
+    """Remove connected components smaller than ``min_area`` pixels (and small holes).
+
+    Parameters
+    ----------
+    mask : ndarray of bool or {0, 1}, shape (H, W)
+        Raw change mask (e.g. ``|chi| > kapur_threshold(|chi|)``).
+    min_area : int
+        Minimum area in pixels: components with fewer pixels are removed, and (with
+        ``fill_holes``) background holes with fewer pixels are filled. ``0`` or ``1``
+        changes nothing.
+    connectivity : {1, 2}, optional
+        Neighbourhood of a component: 1 = 4-connected, 2 = 8-connected (default).
+        Holes use the complementary connectivity (8-connected objects have
+        4-connected holes and vice versa), as digital topology requires.
+    fill_holes : bool, optional
+        Also fill holes smaller than ``min_area`` inside the kept components.
+        Default True.
+
+    Returns
+    -------
+    ndarray of bool, shape (H, W)
+        Cleaned mask (a new array; ``mask`` is not modified).
+
+    Raises
+    ------
+    ParameterError
+        For a negative ``min_area``, a ``connectivity`` other than 1 or 2, or a mask
+        that is not 2-D.
+    InputError
+        If ``mask`` holds values other than 0/1.
+    """
+    m = np.asarray(mask)
+    if m.ndim != 2:
+        raise ParameterError(f"mask: expected a 2-D array (H, W), got shape {m.shape}")
+    if m.dtype != bool:
+        if not np.issubdtype(m.dtype, np.number) or np.any((m != 0) & (m != 1)):
+            raise InputError("mask: expected a boolean or 0/1 array")
+        m = m != 0
+    area = _check_min_area(min_area)
+    if connectivity not in (1, 2) or isinstance(connectivity, bool):
+        raise ParameterError(f"connectivity: expected 1 or 2, got {connectivity!r}")
+    out = m.copy()
+    if area <= 1:
+        return out
+    # skimage >= 0.26: ``max_size`` removes components of <= max_size pixels
+    # (the deprecated ``min_size`` removed those of < min_size pixels).
+    out = remove_small_objects(out, max_size=area - 1, connectivity=connectivity)
+    if fill_holes:
+        out = remove_small_holes(out, max_size=area - 1, connectivity=3 - connectivity)
+    return out
+
+
+def hysteresis_mask(score, *, low: float, high: float) -> np.ndarray:
+    """Hysteresis threshold: pixels above ``low`` connected to a pixel above ``high``.
+
+    Parameters
+    ----------
+    score : ndarray, shape (H, W)
+        Change score, e.g. ``|chi|`` in image intensity units. NaN counts as below
+        both thresholds.
+    low, high : float
+        Thresholds in the units of ``score``, ``low <= high``. A pixel is kept if
+        ``score > low`` and its 4-connected component of such pixels (scikit-image's
+        labelling) contains a pixel with ``score > high``.
+
+    Returns
+    -------
+    ndarray of bool, shape (H, W)
+
+    Raises
+    ------
+    ParameterError
+        If ``low > high``, a threshold is NaN, or ``score`` is not 2-D.
+    """
+    s = np.asarray(score)
+    if s.ndim != 2:
+        raise ParameterError(f"score: expected a 2-D array (H, W), got shape {s.shape}")
+    low_f, high_f = float(low), float(high)
+    if math.isnan(low_f) or math.isnan(high_f) or low_f > high_f:
+        raise ParameterError(f"low, high: expected low <= high, got low={low!r}, high={high!r}")
+    s = np.nan_to_num(s.astype(np.float64, copy=False), nan=-np.inf)
+    return apply_hysteresis_threshold(s, low_f, high_f)

@@ -1,0 +1,175 @@
+"""Tests of tiles._store: partial store, finalize/abort, overwrite, dims, JSON."""
+
+import datetime
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from ops._errors import InputError, ParameterError
+from tiles._store import (
+    ArraySpec,
+    abort_result_store,
+    create_result_store,
+    finalize_result_store,
+    jsonable,
+    open_result_store,
+    write_array,
+)
+
+H, W, D = 30, 44, 6
+TILE = 16
+
+
+def _specs():
+    tiles_y, tiles_x = -(-H // TILE), -(-W // TILE)
+    return {
+        "change_mask": ArraySpec((H, W), "uint8", (TILE, TILE), ("y", "x")),
+        "trajectory": ArraySpec((H, D), "float32", (H, D), ("row", "axis")),
+        "gain": ArraySpec((tiles_y, tiles_x), "float32", (tiles_y, tiles_x),
+                          ("tile_y", "tile_x"), fill_value=1.0),
+    }
+
+
+@pytest.fixture
+def arrays():
+    rng = np.random.default_rng(0)
+    return {
+        "change_mask": (rng.random((H, W)) > 0.9).astype(np.uint8),
+        "trajectory": rng.normal(size=(H, D)).astype(np.float32),
+    }
+
+
+@pytest.fixture
+def out(tmp_path):
+    return tmp_path / "out.zarr"
+
+
+def _partials(path):
+    return sorted(p.name for p in path.parent.iterdir() if ".partial-" in p.name)
+
+
+def _write_store(out, arrays, *, overwrite=False, attrs=None):
+    group = create_result_store(out, _specs(), attrs or {"run": 1}, overwrite=overwrite)
+    assert not out.exists()  # nothing at the final path before finalisation
+    mask = arrays["change_mask"]
+    for r0 in range(0, H, TILE):  # tile by tile: regions do not divide the image
+        for c0 in range(0, W, TILE):
+            region = (slice(r0, r0 + TILE), slice(c0, c0 + TILE))
+            write_array(group, "change_mask", mask[region], region)
+    write_array(group, "trajectory", arrays["trajectory"])
+    return finalize_result_store(group, out, overwrite=overwrite)
+
+
+def test_create_write_finalize(out, arrays):
+    attrs = {"params": {"tile": (TILE, TILE)}, "input": Path("ref.tif"),
+             "n": np.int64(3)}
+    assert _write_store(out, arrays, attrs=attrs) == out
+    assert _partials(out) == []
+    store = open_result_store(out)
+    np.testing.assert_array_equal(store["change_mask"][...], arrays["change_mask"])
+    np.testing.assert_array_equal(store["trajectory"][...], arrays["trajectory"])
+    np.testing.assert_array_equal(store["gain"][...], np.ones((2, 3), np.float32))
+    assert dict(store.attrs) == {
+        "params": {"tile": [TILE, TILE]}, "input": "ref.tif", "n": 3,
+    }
+    with pytest.raises(ValueError, match="read-only"):
+        store["gain"][0, 0] = 2.0
+
+
+def test_xarray_opens_with_dim_names(out, arrays):
+    _write_store(out, arrays)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no consolidation warning either
+        ds = xr.open_zarr(out)
+    assert ds["change_mask"].dims == ("y", "x")
+    assert ds["trajectory"].dims == ("row", "axis")
+    assert ds["gain"].dims == ("tile_y", "tile_x")
+    assert ds.sizes["y"] == H and ds.sizes["axis"] == D
+    np.testing.assert_array_equal(ds["change_mask"].values, arrays["change_mask"])
+    assert ds.attrs["run"] == 1
+
+
+def test_existing_output_without_overwrite_raises(out, arrays):
+    _write_store(out, arrays)
+    with pytest.raises(InputError, match="output exists; pass --overwrite") as exc_info:
+        create_result_store(out, _specs(), {}, overwrite=False)
+    assert str(exc_info.value).startswith(str(out))
+    assert _partials(out) == []
+
+
+def test_overwrite_replaces_only_at_finalize(out, arrays):
+    _write_store(out, arrays, attrs={"run": 1})
+    group = create_result_store(out, _specs(), {"run": 2}, overwrite=True)
+    assert open_result_store(out).attrs["run"] == 1  # old store intact while writing
+    write_array(group, "change_mask", np.ones((H, W), np.uint8))
+    finalize_result_store(group, out, overwrite=True)
+    store = open_result_store(out)
+    assert store.attrs["run"] == 2
+    assert store["change_mask"][...].all()
+    assert sorted(p.name for p in out.parent.iterdir()) == ["out.zarr"]
+
+
+def test_overwrite_refuses_non_zarr_path(tmp_path):
+    victim = tmp_path / "notes"
+    victim.mkdir()
+    (victim / "keep.txt").write_text("precious")
+    with pytest.raises(InputError, match="not a zarr store"):
+        create_result_store(victim, _specs(), {}, overwrite=True)
+    assert (victim / "keep.txt").read_text() == "precious"
+
+
+def test_abort_leaves_nothing(out):
+    group = create_result_store(out, _specs(), {}, overwrite=False)
+    write_array(group, "gain", np.full((2, 3), 0.5, np.float32))
+    assert len(_partials(out)) == 1
+    abort_result_store(group)
+    assert _partials(out) == [] and not out.exists()
+    abort_result_store(group)  # idempotent
+    with pytest.raises(ParameterError):
+        abort_result_store(out)  # never deletes a final store
+
+
+def test_write_array_checks(out):
+    group = create_result_store(out, _specs(), {}, overwrite=False)
+    with pytest.raises(ParameterError, match="expected shape \\(4, 4\\)"):
+        write_array(group, "change_mask", np.zeros((5, 4), np.uint8),
+                    (slice(0, 4), slice(0, 4)))
+    with pytest.raises(ParameterError, match="'nope'"):
+        write_array(group, "nope", np.zeros(3))
+    abort_result_store(group)
+
+
+def test_open_missing_store(tmp_path):
+    with pytest.raises(InputError, match="no such output store"):
+        open_result_store(tmp_path / "missing.zarr")
+
+
+def test_array_spec_validation():
+    with pytest.raises(ParameterError, match="same length"):
+        ArraySpec((3, 4), "uint8", (3,), ("y", "x"))
+    assert ArraySpec([3, 4], np.float32, [2, 2], ["y", "x"]).dtype == "float32"
+
+
+def test_jsonable():
+    @dataclass
+    class Params:
+        tile: tuple
+
+    value = {
+        "a": np.float32(1.5), "b": np.arange(3), "c": (1, (2, Path("p"))),
+        "d": Params((512, 512)), "e": float("nan"), "f": np.dtype("uint8"),
+        "g": datetime.date(2024, 1, 2), 3: {np.bool_(True)},
+    }
+    out = jsonable(value)
+    assert out == {
+        "a": 1.5, "b": [0, 1, 2], "c": [1, [2, "p"]], "d": {"tile": [512, 512]},
+        "e": "NaN", "f": "uint8", "g": "2024-01-02", "3": [True],
+    }
+    json.dumps(out, allow_nan=False)
+    with pytest.raises(ParameterError, match="attrs.x"):
+        jsonable({"x": object()})

@@ -1,0 +1,390 @@
+"""The zarr v3 output store: create in a partial directory, write, then rename.
+
+A run writes into ``<path>.partial-<random>`` next to the final path and only
+:func:`finalize_result_store` makes it visible under the final name, so a failed
+run never leaves a half-written store at ``<path>``.  Every array carries
+``dimension_names`` and the final store has consolidated metadata, so
+
+>>> import xarray as xr
+>>> ds = xr.open_zarr("out.zarr")  # doctest: +SKIP
+
+opens it with dims such as ``change_mask (y, x)``, ``trajectory (row, axis)`` and
+``gain (tile_y, tile_x)`` and without warnings; no extra argument is needed.
+(A store that was not finalized has no consolidated metadata: open it with
+``xr.open_zarr(path, consolidated=False)``.)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import math
+import os
+import secrets
+import shutil
+import warnings
+from dataclasses import dataclass
+from pathlib import Path, PurePath
+from typing import Any
+
+import numpy as np
+
+from ops._errors import InputError, ParameterError
+
+__all__ = [
+    "ArraySpec",
+    "abort_result_store",
+    "create_result_store",
+    "finalize_result_store",
+    "jsonable",
+    "open_result_store",
+    "write_array",
+]
+
+_PARTIAL = ".partial-"
+_ZARR_MARKERS = ("zarr.json", ".zgroup", ".zarray")
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """Shape, dtype, chunking and dimension names of one output array.
+
+    Attributes
+    ----------
+    shape : tuple of int
+        Array shape, e.g. (H, W) in pixels.
+    dtype : str
+        NumPy dtype name, e.g. ``"uint8"`` or ``"float32"``.
+    chunks : tuple of int
+        Chunk shape, same length as ``shape`` (e.g. the core tile size).
+    dims : tuple of str
+        Dimension names, same length as ``shape``, e.g. ``("y", "x")``.
+    fill_value : int or float, default 0
+        Value of chunks never written.
+    """
+
+    shape: tuple[int, ...]
+    dtype: str
+    chunks: tuple[int, ...]
+    dims: tuple[str, ...]
+    fill_value: int | float = 0
+
+    def __post_init__(self) -> None:
+        shape = tuple(int(n) for n in self.shape)
+        chunks = tuple(int(n) for n in self.chunks)
+        dims = tuple(str(d) for d in self.dims)
+        if not (len(shape) == len(chunks) == len(dims)):
+            raise ParameterError(
+                f"ArraySpec: shape {shape}, chunks {chunks} and dims {dims} must have "
+                f"the same length"
+            )
+        if any(n < 0 for n in shape) or any(n < 1 for n in chunks):
+            raise ParameterError(
+                f"ArraySpec: expected shape >= 0 and chunks >= 1, got shape {shape}, "
+                f"chunks {chunks}"
+            )
+        object.__setattr__(self, "shape", shape)
+        object.__setattr__(self, "chunks", chunks)
+        object.__setattr__(self, "dims", dims)
+        object.__setattr__(self, "dtype", np.dtype(self.dtype).name)
+
+
+# ---------------------------------------------------------------------------- JSON
+
+
+def jsonable(obj: Any) -> Any:
+    """Convert ``obj`` recursively to plain JSON types (strict JSON, no NaN).
+
+    NumPy scalars become Python numbers, arrays and tuples become lists, paths
+    become strings, dataclasses dicts, dates ISO 8601 strings, NumPy dtypes their
+    name, sets sorted lists, dict keys strings.  Non-finite floats become the strings
+    ``"NaN"``, ``"Infinity"`` and ``"-Infinity"`` (zarr v3's spelling).
+
+    Raises
+    ------
+    ParameterError
+        For an object with no JSON form; the message gives its location.
+    """
+    return _jsonable(obj, "attrs")
+
+
+def _jsonable(obj: Any, where: str) -> Any:
+    if obj is None or isinstance(obj, (bool, str)):
+        return obj
+    if isinstance(obj, np.generic):
+        return _jsonable(obj.item(), where)
+    if isinstance(obj, int):
+        return int(obj)
+    if isinstance(obj, float):
+        if math.isfinite(obj):
+            return float(obj)
+        return "NaN" if math.isnan(obj) else ("Infinity" if obj > 0 else "-Infinity")
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist(), where)
+    if isinstance(obj, PurePath):
+        return str(obj)
+    if isinstance(obj, np.dtype):
+        return obj.name
+    if isinstance(obj, (_dt.datetime, _dt.date, _dt.time)):
+        return obj.isoformat()
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        fields = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+        return _jsonable(fields, where)
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v, f"{where}.{k}") for k, v in obj.items()}
+    if isinstance(obj, (set, frozenset)):
+        return sorted((_jsonable(v, where) for v in obj), key=repr)
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v, f"{where}[{i}]") for i, v in enumerate(obj)]
+    raise ParameterError(
+        f"{where}: expected a JSON-serialisable value, got {type(obj).__name__}"
+    )
+
+
+# ------------------------------------------------------------------------- helpers
+
+
+def _is_zarr_store(path: Path) -> bool:
+    return path.is_dir() and any((path / m).exists() for m in _ZARR_MARKERS)
+
+
+def _check_replaceable(path: Path, *, overwrite: bool) -> None:
+    """InputError unless ``path`` is absent, or a zarr store and ``overwrite``."""
+    if not os.path.lexists(path):
+        return
+    if not overwrite:
+        raise InputError(f"{path}: output exists; pass --overwrite to replace it")
+    if not _is_zarr_store(path):
+        raise InputError(
+            f"{path}: output exists and is not a zarr store; refusing to replace it"
+        )
+
+
+def _group_path(group_or_path: Any) -> Path:
+    """Local directory of a zarr group (or a path given as is)."""
+    if isinstance(group_or_path, (str, os.PathLike)):
+        return Path(group_or_path)
+    store = getattr(group_or_path, "store", None)
+    root = getattr(store, "root", None)
+    if root is None:
+        raise ParameterError(
+            f"store: expected a path or a zarr group on a local directory, got "
+            f"{type(group_or_path).__name__}"
+        )
+    return Path(root) / group_or_path.path
+
+
+def _consolidate(path: Path) -> None:
+    import zarr
+
+    with warnings.catch_warnings():
+        # zarr-python warns that consolidated metadata is not (yet) in the v3 spec;
+        # xarray uses it, and it is what lets xr.open_zarr(path) work without warnings.
+        warnings.filterwarnings("ignore", message=".*[Cc]onsolidated metadata.*")
+        zarr.consolidate_metadata(str(path))
+
+
+# ---------------------------------------------------------------------- public API
+
+
+def create_result_store(
+    path: str | os.PathLike,
+    arrays: dict[str, ArraySpec],
+    attrs: dict[str, Any],
+    *,
+    overwrite: bool,
+):
+    """Create the output zarr v3 group in a partial sibling directory.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Final path of the store, e.g. ``out.zarr``.  Nothing is written there yet:
+        the group lives in ``<path>.partial-<random>`` until
+        :func:`finalize_result_store` (or :func:`abort_result_store`).
+    arrays : dict of str to ArraySpec
+        Arrays to create, filled with their ``fill_value``, with ``dimension_names``.
+    attrs : dict
+        Root attributes; converted with :func:`jsonable`.
+    overwrite : bool
+        Whether an existing store at ``path`` may be replaced at finalisation.
+
+    Returns
+    -------
+    zarr.Group
+        The writable group in the partial directory.
+
+    Raises
+    ------
+    InputError
+        If ``path`` exists and ``overwrite`` is False ("output exists; pass
+        --overwrite to replace it"), or it exists and is not a zarr store.
+    """
+    import zarr
+
+    final = Path(path)
+    _check_replaceable(final, overwrite=overwrite)
+    root_attrs = jsonable(attrs)
+    tmp = final.with_name(f"{final.name}{_PARTIAL}{secrets.token_hex(4)}")
+    group = zarr.create_group(store=str(tmp), zarr_format=3, attributes=root_attrs)
+    try:
+        for name, spec in arrays.items():
+            group.create_array(
+                name,
+                shape=spec.shape,
+                chunks=spec.chunks,
+                dtype=spec.dtype,
+                dimension_names=spec.dims,
+                fill_value=spec.fill_value,
+            )
+    except BaseException:
+        abort_result_store(tmp)
+        raise
+    return group
+
+
+def write_array(
+    group, name: str, array: np.ndarray, region: tuple[slice, ...] | None = None
+) -> None:
+    """Write ``array`` into the array ``name`` of ``group``, whole or in a region.
+
+    Parameters
+    ----------
+    group : zarr.Group
+        A writable group, e.g. from :func:`create_result_store`.
+    name : str
+        Array name in the group.
+    array : ndarray
+        Values; shape equal to the array's shape, or to the region's shape.
+    region : tuple of slice, optional
+        Region to write, one slice per dimension (step 1).  Regions aligned with
+        chunks can be written in parallel.
+
+    Raises
+    ------
+    ParameterError
+        If the array is missing from the group or the shapes do not match.
+    """
+    try:
+        target = group[name]
+    except KeyError:
+        names = sorted(n for n, _ in group.arrays())
+        raise ParameterError(f"name: expected one of {names}, got {name!r}") from None
+    array = np.asarray(array)
+    if region is None:
+        region = tuple(slice(None) for _ in target.shape)
+    region = tuple(region)
+    if len(region) != len(target.shape):
+        raise ParameterError(
+            f"region: expected {len(target.shape)} slices for {name!r}, "
+            f"got {len(region)}"
+        )
+    expected = tuple(len(range(*s.indices(n))) for s, n in zip(region, target.shape))
+    if array.shape != expected:
+        raise ParameterError(
+            f"array: expected shape {expected} for {name!r}{_fmt_region(region)}, "
+            f"got {array.shape}"
+        )
+    target[region] = array
+
+
+def _fmt_region(region: tuple[slice, ...]) -> str:
+    def bound(value: int | None) -> str:
+        return "" if value is None else str(value)
+
+    return "[" + ", ".join(f"{bound(s.start)}:{bound(s.stop)}" for s in region) + "]"
+
+
+def finalize_result_store(
+    tmp_group_or_path, final_path: str | os.PathLike, *, overwrite: bool
+) -> Path:
+    """Consolidate the partial store's metadata and rename it to its final path.
+
+    The rename is atomic (one ``os.replace`` on the same file system).  When
+    ``overwrite`` is True an existing store is first moved aside and deleted only
+    after the new store is in place.
+
+    Parameters
+    ----------
+    tmp_group_or_path : zarr.Group or path-like
+        The group returned by :func:`create_result_store`, or its directory.
+    final_path : str or path-like
+        Final path of the store.
+    overwrite : bool
+        Replace an existing store at ``final_path``.
+
+    Returns
+    -------
+    pathlib.Path
+        ``final_path``.  The group object passed in no longer points at a store: open
+        the result with :func:`open_result_store`.
+
+    Raises
+    ------
+    InputError
+        If ``final_path`` exists and ``overwrite`` is False, or is not a zarr store.
+    """
+    tmp = _group_path(tmp_group_or_path)
+    final = Path(final_path)
+    if not _is_zarr_store(tmp):
+        raise InputError(f"{tmp}: no partial store to finalize")
+    _check_replaceable(final, overwrite=overwrite)
+    _consolidate(tmp)
+    old = None
+    if os.path.lexists(final):
+        old = final.with_name(f"{final.name}.old-{secrets.token_hex(4)}")
+        os.replace(final, old)
+    try:
+        os.replace(tmp, final)
+    except BaseException:
+        if old is not None:
+            os.replace(old, final)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def abort_result_store(tmp_group_or_path) -> None:
+    """Delete a partial store (a no-op if it is already gone).
+
+    Raises
+    ------
+    ParameterError
+        If the path is not a ``<name>.partial-<random>`` directory, so a final store
+        is never deleted by mistake.
+    """
+    tmp = _group_path(tmp_group_or_path)
+    if _PARTIAL not in tmp.name:
+        raise ParameterError(
+            f"store: expected a partial store '<name>{_PARTIAL}<random>', got {tmp}"
+        )
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+def open_result_store(path: str | os.PathLike):
+    """Open a finished output store read-only.
+
+    Returns
+    -------
+    zarr.Group
+
+    Raises
+    ------
+    InputError
+        If ``path`` does not exist or is not a zarr group.
+    """
+    import zarr
+
+    store = Path(path)
+    if not store.exists():
+        raise InputError(f"{store}: no such output store")
+    try:
+        node = zarr.open(store=str(store), mode="r")
+    except Exception as exc:  # noqa: BLE001 - zarr raises many types for bad stores
+        raise InputError(
+            f"{store}: not a readable zarr store ({' '.join(str(exc).split())})"
+        ) from exc
+    if not isinstance(node, zarr.Group):
+        raise InputError(f"{store}: is a zarr array, expected a zarr group")
+    return node
