@@ -1,0 +1,76 @@
+"""Numerical kernels of rsmb: camera model, pose spaces, the RSMB forward model,
+the per-row solvers of eq. 13, registration, change masks and metrics.
+
+Pure numpy (with numba-compiled inner loops); no I/O, no dask, no zarr.
+"""
+
+from ._camera import AXIS_UNITS, POSE_AXES, Camera, full_poses, pose_homographies
+from ._changes import (
+    ChangeParams,
+    ScoreHistogram,
+    change_candidates,
+    change_mask,
+    change_threshold,
+    changes_to_reference,
+    fill_holes,
+    keep_components,
+    label_components,
+    score_histogram,
+)
+from ._errors import InputError, ParameterError, RSMBError
+from ._forward import CameraPath, RenderResult, render
+from ._metrics import ConfusionCounts, confusion, trajectory_rmse
+from ._oracle import ExactRowSolution, huber_objective, optimal_chi, row_objective, solve_row_exact
+from ._posespace import PoseSpace
+from ._register import Registration, RegistrationParams, register
+from ._rowsolve import solve_row_fast
+from ._scene import aerial_scene, paste_changes
+from ._synth import MOTIONS, SyntheticPair, motion_path, synthesize_pair
+from ._threshold import clean_mask, hysteresis_mask, kapur_threshold, kapur_threshold_histogram
+
+__all__ = [
+    "AXIS_UNITS",
+    "POSE_AXES",
+    "Camera",
+    "full_poses",
+    "pose_homographies",
+    "PoseSpace",
+    "CameraPath",
+    "RenderResult",
+    "render",
+    "RegistrationParams",
+    "Registration",
+    "register",
+    "solve_row_fast",
+    "solve_row_exact",
+    "ExactRowSolution",
+    "row_objective",
+    "huber_objective",
+    "optimal_chi",
+    "ChangeParams",
+    "ScoreHistogram",
+    "score_histogram",
+    "change_threshold",
+    "change_mask",
+    "change_candidates",
+    "label_components",
+    "keep_components",
+    "fill_holes",
+    "changes_to_reference",
+    "kapur_threshold",
+    "kapur_threshold_histogram",
+    "clean_mask",
+    "hysteresis_mask",
+    "ConfusionCounts",
+    "confusion",
+    "trajectory_rmse",
+    "aerial_scene",
+    "paste_changes",
+    "MOTIONS",
+    "SyntheticPair",
+    "motion_path",
+    "synthesize_pair",
+    "RSMBError",
+    "InputError",
+    "ParameterError",
+]

@@ -23,17 +23,18 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from scipy import ndimage
 from scipy.ndimage import maximum_filter
 
 from ._camera import pose_homographies
 from ._errors import ParameterError
-from ._threshold import clean_mask, hysteresis_mask, kapur_threshold_histogram
+from ._threshold import clean_mask, kapur_threshold_histogram
 
-__all__ = ["ChangeParams", "ScoreHistogram", "score_histogram", "change_threshold", "change_mask",
-           "changes_to_reference"]
+__all__ = ["ChangeParams", "ScoreHistogram", "score_histogram", "change_threshold", "change_candidates",
+           "label_components", "keep_components", "fill_holes", "change_mask", "changes_to_reference"]
 
 THRESHOLD_METHODS = ("noise", "kapur")
-_RESIDUAL_EDGES = np.concatenate([[0.0], np.geomspace(1e-6, 4.0, 1023)])
+_RESIDUAL_EDGES = np.concatenate([[0.0], np.geomspace(1e-6, 4.0, 1024)])
 _SCORE_EDGES = np.linspace(0.0, 2.0, 513)
 
 
@@ -150,8 +151,70 @@ def change_threshold(histogram, *, params=ChangeParams()):
     return float(max(params.k * 1.4826 * median, params.floor))
 
 
+def change_candidates(score, threshold, *, params=ChangeParams()):
+    """Pixels that may belong to a change: above ``hysteresis * threshold`` and at
+    least ``half_max`` times the largest score within ``half_max_window``.
+
+    Local (a window of ``half_max_window // 2`` px around a pixel decides), so a
+    tile computes it on its core grown by that much.
+
+    Parameters
+    ----------
+    score : ndarray, shape (H, W)
+        ``|chi|``; NaN or 0 where nothing is known.
+    threshold : float
+        From :func:`change_threshold`.
+
+    Returns
+    -------
+    ndarray of bool, shape (H, W)
+    """
+    score = np.nan_to_num(np.asarray(score, dtype=np.float32))
+    mask = score > params.hysteresis * threshold
+    if params.half_max_window > 1:
+        mask &= score >= params.half_max * maximum_filter(score, size=params.half_max_window)
+    return mask
+
+
+def label_components(mask, score):
+    """8-connected components of ``mask`` with their area and largest score.
+
+    Returns
+    -------
+    labels : ndarray of int32, shape (H, W)
+        0 background, 1..n components.
+    area : ndarray of int64, shape (n + 1,)
+    peak : ndarray of float32, shape (n + 1,)
+        Largest ``score`` of each component (a component is a change when its
+        peak reaches the threshold: hysteresis).
+    """
+    labels, n = ndimage.label(mask, structure=np.ones((3, 3), bool))
+    labels = labels.astype(np.int32)
+    area = np.bincount(labels.ravel(), minlength=n + 1).astype(np.int64)
+    peak = np.zeros(n + 1, dtype=np.float32)
+    if n:
+        np.maximum.at(peak, labels.ravel(), np.nan_to_num(np.asarray(score, np.float32)).ravel())
+    peak[0] = 0.0
+    return labels, area, peak
+
+
+def keep_components(area, peak, threshold, *, params=ChangeParams()):
+    """Boolean per component (index 0 = background, never kept): large enough and
+    reaching the threshold."""
+    keep = (area >= params.min_area) & (peak > threshold)
+    keep[0] = False
+    return keep
+
+
+def fill_holes(mask, *, params=ChangeParams()):
+    """Fill holes smaller than ``min_area`` inside changes."""
+    return clean_mask(mask, min_area=params.min_area, fill_holes=True) | mask
+
+
 def change_mask(score, threshold, *, params=ChangeParams()):
-    """Boolean change mask of a score image.
+    """Boolean change mask of a whole score image (the tiled pipeline computes the
+    same from the pieces :func:`change_candidates`, :func:`label_components`,
+    :func:`keep_components` and :func:`fill_holes`, merging labels across seams).
 
     Parameters
     ----------
@@ -164,14 +227,8 @@ def change_mask(score, threshold, *, params=ChangeParams()):
     -------
     ndarray of bool, shape (H, W)
     """
-    score = np.nan_to_num(np.asarray(score, dtype=np.float32))
-    if params.hysteresis < 1:
-        mask = hysteresis_mask(score, low=params.hysteresis * threshold, high=threshold)
-    else:
-        mask = score > threshold
-    if params.half_max_window > 1:
-        mask &= score >= params.half_max * maximum_filter(score, size=params.half_max_window)
-    return clean_mask(mask, min_area=params.min_area)
+    labels, area, peak = label_components(change_candidates(score, threshold, params=params), score)
+    return fill_holes(keep_components(area, peak, threshold, params=params)[labels], params=params)
 
 
 @numba.njit(nogil=True, cache=True)

@@ -16,6 +16,7 @@ import numpy as np
 
 from ._camera import POSE_AXES, Camera, full_poses
 from ._errors import ParameterError
+from ._oracle import solve_row_exact
 from ._posespace import PoseSpace
 from ._rowsolve import _build_row, _gather_row, _remap_rows, _solve_huber_nn, _synthesize
 
@@ -37,6 +38,9 @@ class RegistrationParams:
         Largest motion the wide initial search covers, per axis (+-).
     shutter : {"rolling", "global"}
         "global" solves one weight vector for every row.
+    solver : {"fast", "exact"}
+        The active-set row solver, or the exact cvxpy formulation of eq. 13
+        (the oracle; seconds per row).
     lambda_w, lambda_chi : float
         Weights of ``||w||_1`` and ``||chi||_1`` in eq. 13, intensities in [0, 1].
         ``lambda_chi / 2`` is the residual above which a pixel counts as change.
@@ -59,6 +63,7 @@ class RegistrationParams:
     step: tuple = (1.0, 1.0, 0.5)
     search: tuple = (20.0, 20.0, 3.0)
     shutter: str = "rolling"
+    solver: str = "fast"
     lambda_w: float = 1e-3
     lambda_chi: float = 0.02
     block_rows: int = 7
@@ -75,6 +80,8 @@ class RegistrationParams:
         object.__setattr__(self, "step", space.step)
         search = tuple(float(v) for v in np.broadcast_to(self.search, len(space.axes)))
         object.__setattr__(self, "search", search)
+        if self.solver not in ("fast", "exact"):
+            raise ParameterError(f"solver: expected 'fast' or 'exact', got {self.solver!r}")
         if self.shutter not in ("rolling", "global"):
             raise ParameterError(f"shutter: expected 'rolling' or 'global', got {self.shutter!r}")
         if not (self.lambda_w >= 0 and self.lambda_chi > 0):
@@ -134,7 +141,7 @@ class _RowProblem:
     cheaper than resampling every pose of every row.
     """
 
-    def __init__(self, reference, distorted, dist_valid, camera, ref_origin, dist_origin, axes, steps):
+    def __init__(self, reference, distorted, dist_valid, camera, ref_origin, dist_origin, axes, steps, margin):
         self.ref = reference
         self.dist = distorted
         self.dist_valid = dist_valid
@@ -152,20 +159,26 @@ class _RowProblem:
         self.other = [d for d, a in enumerate(axes) if a not in ("tx", "ty")]
         self.slots = {}
         self.stack = None
+        # pre-warped images cover the distorted window plus the largest shift
+        self.margin = int(margin)
+        self.stack_origin = (self.dy - self.margin, self.dx - self.margin)
+        self.stack_shape = (distorted.shape[0] + 2 * self.margin, distorted.shape[1] + 2 * self.margin)
 
     def _slot(self, key, index):
         slot = self.slots.get(key)
         if slot is None:
             slot = len(self.slots)
             if self.stack is None or slot == self.stack.shape[0]:
-                grow = np.empty((max(8, 2 * slot),) + self.ref.shape, dtype=np.float32)
+                grow = np.empty((max(8, 2 * slot),) + self.stack_shape, dtype=np.float32)
                 if self.stack is not None:
                     grow[:slot] = self.stack
                 self.stack = grow
             pose = np.zeros(len(self.axes))
             pose[self.other] = np.asarray(index, dtype=np.float64)[self.other] * self.steps[self.other]
-            poses = np.broadcast_to(full_poses(pose, self.axes), (self.ref.shape[0], 1, 6)).copy()
-            image, valid = _remap_rows(self.ref, poses, self.focal, self.cx, self.cy, self.ref.shape[1], 0.0, 0.0)
+            poses = np.broadcast_to(full_poses(pose, self.axes), (self.stack_shape[0], 1, 6)).copy()
+            oy, ox = self.stack_origin
+            image, valid = _remap_rows(self.ref, poses, self.focal, self.cx, self.cy, self.stack_shape[1],
+                                       float(oy), float(ox))
             image[valid == 0] = np.nan
             self.stack[slot] = image
             self.slots[key] = slot
@@ -189,7 +202,7 @@ class _RowProblem:
             poses6 = full_poses(poses, self.axes)
         for q, i in enumerate(rows):
             if self.gather:
-                v = _gather_row(self.stack, slot, shift_y, shift_x, int(i + self.dy), self.dx, buf)
+                v = _gather_row(self.stack, slot, shift_y, shift_x, int(i + self.margin), self.margin, buf)
             else:
                 v = _build_row(self.ref, float(i + self.dy), float(self.dx), poses6, self.focal, self.cx, self.cy, buf)
             a[:, q * n:(q + 1) * n] = buf
@@ -197,6 +210,17 @@ class _RowProblem:
         a[:, ~valid] = 0.0
         g = np.where(valid, self.dist[rows].ravel(), 0.0).astype(np.float64)
         return a, g, valid
+
+
+def _shift_margin(params, prior):
+    """Largest translation (px) a row can reach: the search range (or the prior
+    path) plus room for the row neighbourhood to follow the path and widen."""
+    reach = 0.0
+    for d, a in enumerate(params.axes):
+        if a in ("tx", "ty"):
+            extent = params.search[d] if prior is None else np.nanmax(np.abs(np.asarray(prior)[:, d]))
+            reach = max(reach, extent + 3 * params.half_width[d] + 2 * params.step[d])
+    return int(np.ceil(reach)) + 2
 
 
 def _shift_weights(w, counts, delta):
@@ -281,6 +305,11 @@ class _Solver:
     def solve(self, rows, space, center, w0=None):
         index, poses = space.grid(center)
         a, g, valid = self.problem.build(rows, index, poses)
+        if self.params.solver == "exact":
+            w = solve_row_exact(a.T, g, lambda_w=self.params.lambda_w, lambda_chi=self.params.lambda_chi,
+                                weights=valid.astype(np.float64)).w
+            w = np.maximum(w, 0.0)
+            return index, poses, w, a, valid
         w = np.zeros(len(poses)) if w0 is None else w0.copy()
         _solve_huber_nn(a, g, w, self.params.lambda_w, self.delta, self.params.tol, self.params.max_outer,
                         self.params.max_add)
@@ -305,7 +334,7 @@ def _spread(poses, w, centroid, mass=0.9):
 
 
 def register(reference, distorted, *, camera=None, params=None, reference_origin_yx=(0, 0),
-             distorted_origin_yx=(0, 0), reference_valid=None, distorted_valid=None):
+             distorted_origin_yx=(0, 0), reference_valid=None, distorted_valid=None, prior=None):
     """Register a distorted capture against a reference, row by row (eq. 13).
 
     Parameters
@@ -321,6 +350,10 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
         Position of each window's pixel (0, 0) in the whole image.
     reference_valid, distorted_valid : ndarray of bool, optional
         False at nodata pixels.
+    prior : ndarray, shape (H, D), optional
+        A trajectory to search around instead of starting from the middle: every
+        row searches ``N(prior_i, b, s)`` (used to re-solve a tile around its
+        neighbours' path).
 
     Returns
     -------
@@ -335,7 +368,8 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
         ref[~np.asarray(reference_valid, bool)] = np.nan
     dist = np.asarray(distorted, dtype=np.float32)
     dvalid = np.ones(dist.shape, bool) if distorted_valid is None else np.asarray(distorted_valid, bool)
-    problem = _RowProblem(ref, dist, dvalid, camera, reference_origin_yx, distorted_origin_yx, params.axes, params.step)
+    problem = _RowProblem(ref, dist, dvalid, camera, reference_origin_yx, distorted_origin_yx, params.axes,
+                          params.step, _shift_margin(params, prior))
     solver = _Solver(problem, params)
     t0 = time.perf_counter()
     height, width = dist.shape
@@ -344,9 +378,14 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
     out = _Outputs(height, width, len(params.axes))
     mid = _start_row(informative, height)
     band = np.arange(max(0, mid - 16), min(height, mid + 16))
-    center = _coarse_search(problem, params, band)
+    center = _coarse_search(problem, params, band) if prior is None else None
     t1 = time.perf_counter()
-    if params.shutter == "global":
+    if prior is not None:
+        prior = np.asarray(prior, dtype=np.float64)
+        if prior.shape != (height, len(params.axes)):
+            raise ParameterError(f"prior: expected shape {(height, len(params.axes))}, got {prior.shape}")
+        _register_prior(solver, prior, informative, out)
+    elif params.shutter == "global":
         _register_global(solver, center, informative, out)
     else:
         _register_rolling(solver, center, informative, mid, out)
@@ -494,3 +533,21 @@ def _register_global(solver, center, informative, out):
         out.store(i, w, a, valid, solver.problem.dist[i].astype(np.float64), solver.delta)
         out.trajectory[i] = c if c is not None else center
         out.row_state[i] = 1 if informative[i] else 2
+
+
+def _register_prior(solver, prior, informative, out):
+    """Every row around a given trajectory, warm-started from the row above."""
+    space = solver.params.space
+    counts = space.counts
+    previous = None
+    for i in range(prior.shape[0]):
+        w0 = None
+        if previous is not None:
+            w0 = _shift_weights(previous[1], counts, space.snap(prior[i]) - previous[0])
+        index, poses, w, a, valid = solver.solve([i], space, prior[i], w0)
+        out.store(i, w, a, valid, solver.problem.dist[i].astype(np.float64), solver.delta)
+        c = _centroid(poses, w)
+        good = informative[i] and c is not None and valid.any()
+        out.trajectory[i] = c if good else prior[i]
+        out.row_state[i] = 1 if good else (2 if not informative[i] else 3)
+        previous = (space.snap(prior[i]), w)

@@ -45,7 +45,8 @@ class SyntheticPair:
         Truth in the reference grid.
     trajectory : ndarray, shape (H, 6)
         Per-row centroid pose over all axes of :data:`ops.POSE_AXES`.
-    gain : float
+    gain : ndarray, shape (H, W), float32
+        Illumination gain of every captured pixel.
     valid : ndarray of bool, shape (H, W)
         Distorted pixels rendered from inside the scene.
     camera : Camera
@@ -57,7 +58,7 @@ class SyntheticPair:
     change_mask: np.ndarray
     change_mask_reference: np.ndarray
     trajectory: np.ndarray
-    gain: float
+    gain: np.ndarray
     valid: np.ndarray
     camera: Camera
     path: CameraPath
@@ -116,8 +117,9 @@ def synthesize_pair(shape=(256, 256), *, motion="inplane", shutter="rolling", ex
     exposure : float, optional
         Row exposure in row periods; default ``H / 16`` (visible blur).  For a
         global shutter the whole frame is exposed for this long.
-    gain : float
-        Illumination gain of the capture against the reference.
+    gain : float or tuple of float
+        Illumination gain of the capture against the reference; a pair
+        ``(left, right)`` makes it vary linearly across the columns.
     changes : int
         Number of pasted objects.
     change_size : tuple of float
@@ -150,11 +152,24 @@ def synthesize_pair(shape=(256, 256), *, motion="inplane", shutter="rolling", ex
     reference = np.ascontiguousarray(scene[margin:margin + height, margin:margin + width])
     origin = (margin, margin)
     kw = dict(shape=shape, camera=camera, shutter=shutter, row_delay=1.0, exposure=exposure, source_origin_yx=origin)
-    seen = render(changed, path, gain=gain, **kw)
+    gain_map = _gain_map(gain, shape)
+    seen = render(changed, path, **kw)
+    seen_image = seen.image * gain_map
     truth = render(pasted.astype(np.float32), path, **kw)
-    distorted = seen.image
+    distorted = seen_image
     if noise > 0:
         distorted = distorted + np.random.default_rng(seed + 2).normal(0, noise, distorted.shape).astype(np.float32)
     mask_ref = np.ascontiguousarray(pasted[margin:margin + height, margin:margin + width])
     return SyntheticPair(reference, distorted.astype(np.float32), truth.image > 0.5, mask_ref, seen.centroid,
-                         float(gain), seen.valid, camera, path)
+                         gain_map, seen.valid, camera, path)
+
+
+def _gain_map(gain, shape):
+    """Per-pixel gain (H, W) float32 of a scalar or a (left, right) pair."""
+    values = np.atleast_1d(np.asarray(gain, dtype=np.float64))
+    if values.size == 1:
+        return np.full(shape, values[0], dtype=np.float32)
+    if values.size != 2 or not (values > 0).all():
+        raise ParameterError(f"gain: expected a positive number or a (left, right) pair, got {gain!r}")
+    ramp = np.linspace(values[0], values[1], shape[1], dtype=np.float32)
+    return np.broadcast_to(ramp, shape).copy()

@@ -1,6 +1,20 @@
-"""Geometry and storage: ingest of GeoTIFF/PNG/NPY/zarr, tile grids, result stores."""
+"""Geometry and storage: ingest of GeoTIFF/PNG/NPY/zarr, tile grids, result
+stores and the seam merge of per-tile labels."""
 
-from ._io import GeoInfo, Raster, as_float01, check_same_shape, read_image, read_window, write_geotiff
+from ._grid import Tile, TileGrid
+from ._ingest import WindowStats, check_stats, ingest_core, ingest_window
+from ._io import (
+    GeoInfo,
+    ImageInfo,
+    Raster,
+    as_float01,
+    check_same_shape,
+    probe_image,
+    read_image,
+    read_window,
+    write_geotiff,
+)
+from ._stitch import TileLabels, merge_tile_labels
 from ._store import (
     ArraySpec,
     abort_result_store,
@@ -8,22 +22,34 @@ from ._store import (
     finalize_result_store,
     jsonable,
     open_result_store,
+    partial_path,
     write_array,
 )
 
 __all__ = [
+    "Tile",
+    "TileGrid",
+    "WindowStats",
+    "check_stats",
+    "ingest_core",
+    "ingest_window",
     "GeoInfo",
+    "ImageInfo",
     "Raster",
     "as_float01",
+    "probe_image",
     "read_image",
     "read_window",
     "check_same_shape",
     "write_geotiff",
+    "TileLabels",
+    "merge_tile_labels",
     "ArraySpec",
     "create_result_store",
     "write_array",
     "finalize_result_store",
     "abort_result_store",
     "open_result_store",
+    "partial_path",
     "jsonable",
 ]

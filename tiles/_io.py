@@ -690,3 +690,52 @@ def write_geotiff(
         with rasterio.open(out, "w", **profile) as ds:
             ds.write(array, 1)
     return out
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    """What is known of an input image before reading its pixels.
+
+    Attributes
+    ----------
+    path : str
+    shape : tuple of int
+        (H, W) in pixels.
+    geo : GeoInfo
+    sha256 : str
+        Hex digest of the file (of the array bytes for a zarr array).
+    """
+
+    path: str
+    shape: tuple
+    geo: GeoInfo
+    sha256: str
+
+
+def probe_image(path: str | os.PathLike) -> ImageInfo:
+    """Shape, georeferencing and checksum of an image without loading its pixels
+    (formats as :func:`read_image`).
+
+    Raises
+    ------
+    InputError
+        Missing, unreadable, unsupported or empty input (one line naming the file).
+    """
+    name = os.fspath(path)
+    kind = _kind(name)
+    if kind == "rasterio":
+        with _open_rasterio(name) as ds:
+            shape, geo = (ds.height, ds.width), _rasterio_geo(ds)
+        sha = _sha256_file(name)
+    elif kind == "numpy":
+        array = _load_npy(name)
+        _check_2d_nonempty(array.shape, name=name)
+        shape, geo, sha = array.shape[:2], GeoInfo(), _sha256_file(name)
+    else:
+        zarray = _open_zarr_array(name)
+        _check_2d_nonempty(zarray.shape, name=name)
+        shape, geo = zarray.shape[:2], _zarr_geo(zarray, name=name)
+        sha = _sha256_array(np.asarray(zarray[...]))
+    if 0 in shape:
+        raise InputError(f"{name}: is empty (shape {tuple(shape)})")
+    return ImageInfo(name, (int(shape[0]), int(shape[1])), geo, sha)

@@ -1,6 +1,6 @@
 """The zarr v3 output store: create in a partial directory, write, then rename.
 
-A run writes into ``<path>.partial-<random>`` next to the final path and only
+A run writes into ``<path>.partial`` next to the final path and only
 :func:`finalize_result_store` makes it visible under the final name, so a failed
 run never leaves a half-written store at ``<path>``.  Every array carries
 ``dimension_names`` and the final store has consolidated metadata, so
@@ -38,10 +38,11 @@ __all__ = [
     "finalize_result_store",
     "jsonable",
     "open_result_store",
+    "partial_path",
     "write_array",
 ]
 
-_PARTIAL = ".partial-"
+_PARTIAL = ".partial"
 _ZARR_MARKERS = ("zarr.json", ".zgroup", ".zarray")
 
 
@@ -193,6 +194,7 @@ def create_result_store(
     attrs: dict[str, Any],
     *,
     overwrite: bool,
+    resume: bool = False,
 ):
     """Create the output zarr v3 group in a partial sibling directory.
 
@@ -200,7 +202,7 @@ def create_result_store(
     ----------
     path : str or path-like
         Final path of the store, e.g. ``out.zarr``.  Nothing is written there yet:
-        the group lives in ``<path>.partial-<random>`` until
+        the group lives in ``<path>.partial`` until
         :func:`finalize_result_store` (or :func:`abort_result_store`).
     arrays : dict of str to ArraySpec
         Arrays to create, filled with their ``fill_value``, with ``dimension_names``.
@@ -208,6 +210,10 @@ def create_result_store(
         Root attributes; converted with :func:`jsonable`.
     overwrite : bool
         Whether an existing store at ``path`` may be replaced at finalisation.
+    resume : bool
+        Reopen the partial directory an interrupted run left behind (its arrays
+        and what was written to them are kept) instead of starting afresh.  A
+        stale partial directory is removed when ``resume`` is False.
 
     Returns
     -------
@@ -225,7 +231,11 @@ def create_result_store(
     final = Path(path)
     _check_replaceable(final, overwrite=overwrite)
     root_attrs = jsonable(attrs)
-    tmp = final.with_name(f"{final.name}{_PARTIAL}{secrets.token_hex(4)}")
+    tmp = partial_path(final)
+    if _is_zarr_store(tmp):
+        if resume:
+            return zarr.open_group(store=str(tmp), mode="r+")
+        abort_result_store(tmp)
     group = zarr.create_group(store=str(tmp), zarr_format=3, attributes=root_attrs)
     try:
         for name, spec in arrays.items():
@@ -241,6 +251,12 @@ def create_result_store(
         abort_result_store(tmp)
         raise
     return group
+
+
+def partial_path(path: str | os.PathLike) -> Path:
+    """The directory where a run writes the store that will become ``path``."""
+    final = Path(path)
+    return final.with_name(f"{final.name}{_PARTIAL}")
 
 
 def write_array(
@@ -351,13 +367,13 @@ def abort_result_store(tmp_group_or_path) -> None:
     Raises
     ------
     ParameterError
-        If the path is not a ``<name>.partial-<random>`` directory, so a final store
+        If the path is not a ``<name>.partial`` directory, so a final store
         is never deleted by mistake.
     """
     tmp = _group_path(tmp_group_or_path)
     if _PARTIAL not in tmp.name:
         raise ParameterError(
-            f"store: expected a partial store '<name>{_PARTIAL}<random>', got {tmp}"
+            f"store: expected a partial store '<name>{_PARTIAL}', got {tmp}"
         )
     shutil.rmtree(tmp, ignore_errors=True)
 

@@ -50,7 +50,7 @@ def out(tmp_path):
 
 
 def _partials(path):
-    return sorted(p.name for p in path.parent.iterdir() if ".partial-" in p.name)
+    return sorted(p.name for p in path.parent.iterdir() if ".partial" in p.name)
 
 
 def _write_store(out, arrays, *, overwrite=False, attrs=None):

@@ -1,0 +1,399 @@
+"""``rsmb detect``: tiled RSMB registration and change detection of one capture.
+
+Stages (each one task per tile, see :mod:`pipeline._tasks`):
+
+1. ingest both images into the store (reference with its halo baked into one
+   chunk per tile, the capture chunked by tile);
+2. register every tile (resumable: finished tiles are marked in the store);
+3. fuse the per-row trajectories of tiles sharing rows, re-solve tiles whose
+   path disagrees with their band's around the others' path;
+4. one change threshold for the whole image from summed tile histograms;
+5. label change candidates per tile, merge labels across seams, keep
+   components that reach the threshold and the minimum area;
+6. changes in the reference grid from the fused trajectory;
+7. attributes, GeoTIFFs on request, and an atomic rename of the store.
+"""
+
+import dataclasses
+import hashlib
+import json
+import logging
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import ops
+import tiles
+from ops import ChangeParams, InputError, RegistrationParams
+
+from . import _tasks
+from ._scheduler import open_runner
+
+__all__ = ["DetectConfig", "detect", "default_overlap", "VERSION"]
+
+VERSION = "0.1.0"
+log = logging.getLogger("rsmb")
+
+
+@dataclass(frozen=True)
+class DetectConfig:
+    """Everything that decides the result of :func:`detect`.
+
+    Attributes
+    ----------
+    registration : RegistrationParams
+    changes : ChangeParams
+    tile : int
+        Core tile side in pixels.
+    overlap : int or None
+        Halo in pixels; None derives it from the search range (see
+        :func:`default_overlap`).
+    focal : float or None
+        Focal length in pixels of the whole image (default 1.2 x larger side).
+    agreement : float
+        A tile whose path differs from its band's by more than this (px, RMS of
+        the displacement of its row ends) is re-solved around the others' path.
+    """
+
+    registration: RegistrationParams = field(default_factory=RegistrationParams)
+    changes: ChangeParams = field(default_factory=ChangeParams)
+    tile: int = 512
+    overlap: int | None = None
+    focal: float | None = None
+    agreement: float = 1.0
+
+
+def default_overlap(params, camera, shape):
+    """Halo (px) that holds every displacement the wide search allows anywhere in
+    the image, plus the row neighbourhood: the extreme poses of the search box
+    are applied to the image corners."""
+    axes = params.axes
+    search = np.asarray(params.search)
+    corners = np.array([[0, 0, 1], [shape[1] - 1, 0, 1], [0, shape[0] - 1, 1], [shape[1] - 1, shape[0] - 1, 1.0]]).T
+    signs = np.array(np.meshgrid(*[[-1.0, 1.0]] * len(axes), indexing="ij")).reshape(len(axes), -1).T
+    hom = ops.pose_homographies(signs * search, camera, axes=axes, inverse=True)
+    pts = hom @ corners
+    pts = pts[:, :2] / pts[:, 2:3]
+    reach = float(np.abs(pts - corners[None, :2]).max())
+    hw = max([params.half_width[d] for d, a in enumerate(axes) if a in ("tx", "ty")] + [0.0])
+    return int(np.ceil(reach + 3 * hw)) + 8
+
+
+def _run_key(ref_info, dist_info, config, grid):
+    text = json.dumps(tiles.jsonable({"reference": ref_info.sha256, "distorted": dist_info.sha256,
+                                      "config": config, "grid": [grid.shape, grid.tile, grid.halo],
+                                      "version": VERSION}), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _specs(grid, dims):
+    h, w = grid.shape
+    t = grid.tile
+    ny, nx = grid.grid_shape
+    wh, ww = grid.window_shape
+    spec = tiles.ArraySpec
+    return {
+        "registered": spec((h, w), "float32", (t, t), ("y", "x"), float("nan")),
+        "change_score": spec((h, w), "float32", (t, t), ("y", "x"), 0.0),
+        "change_mask": spec((h, w), "uint8", (t, t), ("y", "x")),
+        "change_mask_reference": spec((h, w), "uint8", (t, t), ("y", "x")),
+        "trajectory": spec((h, dims), "float32", (t, dims), ("y", "pose_axis"), float("nan")),
+        "tile_trajectory": spec((h, nx, dims), "float32", (t, 1, dims), ("y", "tile_x", "pose_axis"), float("nan")),
+        "tile_row_state": spec((h, nx), "uint8", (t, 1), ("y", "tile_x")),
+        "gain": spec((ny, nx), "float32", (1, 1), ("tile_y", "tile_x"), float("nan")),
+        "tile_agreement": spec((ny, nx), "float32", (ny, nx), ("tile_y", "tile_x"), float("nan")),
+        "work/residual_histogram": spec((ny, nx, 1024), "int64", (1, 1, 1024), ("tile_y", "tile_x", "bin")),
+        "work/score_histogram": spec((ny, nx, 512), "int64", (1, 1, 512), ("tile_y", "tile_x", "bin")),
+        "work/tile_seconds": spec((ny, nx), "float32", (1, 1), ("tile_y", "tile_x"), float("nan")),
+        "work/tile_done": spec((ny, nx), "uint8", (1, 1), ("tile_y", "tile_x")),
+        "work/labels": spec((h, w), "int32", (t, t), ("y", "x")),
+        "ingest/reference_windows": spec((ny, nx, wh, ww), "float32", (1, 1, wh, ww),
+                                         ("tile_y", "tile_x", "window_y", "window_x"), float("nan")),
+        "ingest/distorted": spec((h, w), "float32", (t, t), ("y", "x"), float("nan")),
+    }
+
+
+def _row_end_points(tile):
+    """Global (x, y) of the two ends of every core row of ``tile``: (rows, 2, 2)."""
+    rows = np.arange(tile.core[0].start, tile.core[0].stop, dtype=np.float64)
+    left = np.stack([np.full_like(rows, tile.core[1].start), rows], -1)
+    right = np.stack([np.full_like(rows, tile.core[1].stop - 1), rows], -1)
+    return np.stack([left, right], 1)
+
+
+def _disagreement(path, reference, tile, camera, axes):
+    """RMS over rows of the largest displacement between two paths at the row ends."""
+    ok = np.isfinite(path).all(1) & np.isfinite(reference).all(1)
+    if not ok.any():
+        return float("nan")
+    pts = _row_end_points(tile)[ok]
+    ha = ops.pose_homographies(path[ok], camera, axes=axes)
+    hb = ops.pose_homographies(reference[ok], camera, axes=axes)
+    homog = np.concatenate([pts, np.ones(pts.shape[:2] + (1,))], -1)
+    pa = np.einsum("rij,rpj->rpi", ha, homog)
+    pb = np.einsum("rij,rpj->rpi", hb, homog)
+    d = np.linalg.norm(pa[..., :2] / pa[..., 2:] - pb[..., :2] / pb[..., 2:], axis=-1).max(-1)
+    return float(np.sqrt(np.mean(d ** 2)))
+
+
+def _fuse(paths, states):
+    """Per-row median over tiles of solved rows; rows no tile solved take the
+    median of whatever the tiles have, then interpolation."""
+    good = np.where((states == 1)[..., None], paths, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows are handled below
+        fused = np.nanmedian(good, axis=1)
+        fallback = np.nanmedian(paths, axis=1)
+    fused = np.where(np.isnan(fused), fallback, fused)
+    rows = np.arange(fused.shape[0])
+    for d in range(fused.shape[1]):
+        bad = np.isnan(fused[:, d])
+        if bad.all():
+            fused[:, d] = 0.0
+        elif bad.any():
+            fused[bad, d] = np.interp(rows[bad], rows[~bad], fused[~bad, d])
+    return fused
+
+
+def _agreement(group, grid, camera, axes):
+    paths = group["tile_trajectory"][:].astype(np.float64)
+    states = group["tile_row_state"][:]
+    fused = _fuse(paths, states)
+    ny, nx = grid.grid_shape
+    agree = np.full((ny, nx), np.nan)
+    for tile in grid:
+        ty, tx = tile.index
+        rows = tile.core[0]
+        agree[ty, tx] = _disagreement(np.where((states[rows, tx] == 1)[:, None], paths[rows, tx], np.nan),
+                                      fused[rows], tile, camera, axes)
+    return fused, paths, states, agree
+
+
+def _outliers(agree, residual_level, tolerance):
+    """Tiles to re-solve: in each band with more than one tile, those beyond the
+    tolerance; with exactly two tiles that disagree, the one that fits worse."""
+    out = []
+    for ty in range(agree.shape[0]):
+        row = agree[ty]
+        if row.size < 2:
+            continue
+        bad = [tx for tx in range(row.size) if not row[tx] <= tolerance]
+        if not bad or len(bad) == row.size and row.size > 2:
+            continue
+        if row.size == 2 and len(bad) == 2:
+            bad = [int(np.nanargmax(residual_level[ty]))]
+        out.extend((ty, tx) for tx in bad)
+    return out
+
+
+def _median_level(hist):
+    """Median |residual| of each tile from its histogram (a fit-quality level)."""
+    edges = ops._changes._RESIDUAL_EDGES
+    cum = np.cumsum(hist, axis=-1)
+    idx = (cum < 0.5 * cum[..., -1:]).sum(-1)
+    return edges[np.minimum(idx + 1, len(edges) - 1)]
+
+
+def _ingest(runner, group, store, ref_info, dist_info, grid):
+    if group.attrs.get("ingest_complete"):
+        log.info("ingest: already complete (resume)")
+        return
+    args = [(store, "ingest/reference_windows", ref_info.path, ref_info.shape, t, "windows") for t in grid]
+    stats_ref = runner.map("ingest ref", _tasks.ingest_task, args)
+    args = [(store, "ingest/distorted", dist_info.path, dist_info.shape, t, "plain") for t in grid]
+    stats_dist = runner.map("ingest dist", _tasks.ingest_task, args)
+    tiles.check_stats(sum(stats_ref[1:], stats_ref[0]), ref_info.path)
+    tiles.check_stats(sum(stats_dist[1:], stats_dist[0]), dist_info.path)
+    group.attrs["ingest_complete"] = True
+
+
+def detect(reference, distorted, output, *, config=None, scheduler="threads", workers=None, overwrite=False,
+           resume=False, geotiff=None):
+    """Register ``distorted`` against ``reference`` and write the change store.
+
+    Parameters
+    ----------
+    reference, distorted : str or path-like
+        Images (GeoTIFF, PNG/JPEG, NPY or a zarr array) of the same size.
+    output : str or path-like
+        The zarr store to write (see DESIGN.md's output store).
+    config : DetectConfig, optional
+    scheduler : str
+        ``threads``, ``processes``, ``synchronous``, a ``tcp://`` address or a
+        scheduler file.
+    workers : int, optional
+        Worker count of a local scheduler (default: one per core).
+    overwrite : bool
+        Replace an existing output store.
+    resume : bool
+        Continue an interrupted run with the same inputs and configuration: only
+        tiles not yet registered run.
+    geotiff : str or path-like, optional
+        Directory where the masks are also written as GeoTIFFs.
+
+    Returns
+    -------
+    dict
+        Summary: timings, threshold, tile counts, gain range, output path.
+
+    Raises
+    ------
+    InputError
+        Unusable inputs (unreadable, empty, constant, NaN, different sizes) or an
+        existing output without ``overwrite``.
+    """
+    t_start = time.perf_counter()
+    config = config or DetectConfig()
+    ref_info = tiles.probe_image(reference)
+    dist_info = tiles.probe_image(distorted)
+    if ref_info.shape != dist_info.shape:
+        raise InputError(f"{dist_info.path}: size {dist_info.shape} differs from the reference "
+                         f"{ref_info.path} {ref_info.shape}; give images of the same size")
+    shape = dist_info.shape
+    camera = ops.Camera.for_shape(shape, focal=config.focal)
+    params = config.registration
+    halo = config.overlap if config.overlap is not None else default_overlap(params, camera, shape)
+    grid = tiles.TileGrid(shape, config.tile, halo)
+    axes = params.axes
+    key = _run_key(ref_info, dist_info, config, grid)
+    group = tiles.create_result_store(output, _specs(grid, len(axes)), {"run_key": key}, overwrite=overwrite,
+                                      resume=resume)
+    store = str(tiles.partial_path(output))
+    if resume and group.attrs.get("run_key") != key:
+        raise InputError(f"{output}: the interrupted run had other inputs or parameters; run without --resume")
+    timings = {}
+    try:
+        with open_runner(scheduler, workers=workers) as runner:
+            log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", dist_info.path, shape[0],
+                     shape[1], len(grid), grid.tile, grid.halo, scheduler)
+            t0 = time.perf_counter()
+            _ingest(runner, group, store, ref_info, dist_info, grid)
+            timings["ingest_s"] = time.perf_counter() - t0
+
+            t0 = time.perf_counter()
+            done = group["work/tile_done"][:]
+            todo = [t for t in grid if not done[t.index]]
+            if resume:
+                log.info("resume: %d of %d tiles already registered", len(grid) - len(todo), len(grid))
+            stats = runner.map("register", _tasks.register_task, [(store, t, camera, params) for t in todo])
+            timings["register_s"] = time.perf_counter() - t0
+            timings["tiles_registered"] = len(todo)
+            if stats:
+                timings["kernel_s_sum"] = float(sum(s["kernel_s"] for s in stats))
+                timings["read_s_sum"] = float(sum(s["read_s"] for s in stats))
+                timings["write_s_sum"] = float(sum(s["write_s"] for s in stats))
+
+            t0 = time.perf_counter()
+            fused, paths, states, agree = _agreement(group, grid, camera, axes)
+            level = _median_level(group["work/residual_histogram"][:])
+            resolve = _outliers(agree, level, config.agreement)
+            if resolve:
+                log.info("re-solving %d tile(s) whose path disagrees with their band: %s", len(resolve), resolve)
+                args = []
+                for ty, tx in resolve:
+                    tile = grid[ty, tx]
+                    rows = tile.core[0]
+                    others = np.delete(paths[rows], tx, axis=1)
+                    prior = _fuse(others, np.delete(states[rows], tx, axis=1))
+                    args.append((store, tile, camera, params, prior))
+                runner.map("re-solve", _tasks.register_task, args)
+                fused, paths, states, agree = _agreement(group, grid, camera, axes)
+            group["trajectory"][:] = fused.astype(np.float32)
+            group["tile_agreement"][:] = agree.astype(np.float32)
+            timings["fuse_s"] = time.perf_counter() - t0
+
+            t0 = time.perf_counter()
+            hist = ops.ScoreHistogram(group["work/residual_histogram"][:].sum((0, 1)),
+                                      group["work/score_histogram"][:].sum((0, 1)))
+            threshold = ops.change_threshold(hist, params=config.changes)
+            summaries = runner.map("label", _tasks.label_task,
+                                   [(store, t, shape, threshold, config.changes) for t in grid])
+            summaries = {s.index: s for s in summaries}
+            offsets, root, area, peak = tiles.merge_tile_labels(summaries, grid.grid_shape)
+            keep_global = ops.keep_components(area, peak, threshold, params=config.changes)
+            args = []
+            for t in grid:
+                n = len(summaries[t.index].area)
+                keep = keep_global[root[offsets[t.index]:offsets[t.index] + n]].copy()
+                keep[0] = False
+                args.append((store, t, keep, config.changes))
+            changed = sum(runner.map("mask", _tasks.mask_task, args))
+            runner.map("reference", _tasks.reference_mask_task,
+                       [(store, t, shape, camera, axes, grid.halo) for t in grid])
+            timings["changes_s"] = time.perf_counter() - t0
+            tasks_per_tile = runner.tasks_run / len(grid)
+
+        gains = group["gain"][:]
+        timings["total_s"] = time.perf_counter() - t_start
+        summary = {
+            "output": str(output),
+            "shape": list(shape),
+            "tiles": list(grid.grid_shape),
+            "tile_size": grid.tile,
+            "halo": grid.halo,
+            "threshold": threshold,
+            "changed_pixels": int(changed),
+            "changed_fraction": changed / float(shape[0] * shape[1]),
+            "components": int(keep_global.sum()),
+            "gain_min": float(np.nanmin(gains)),
+            "gain_max": float(np.nanmax(gains)),
+            "resolved_tiles": [list(t) for t in resolve],
+            "tile_agreement_px_max": float(np.nanmax(agree)) if np.isfinite(agree).any() else None,
+            "tasks_per_tile": tasks_per_tile,
+            "megapixels_per_s": shape[0] * shape[1] / 1e6 / timings["total_s"],
+            "timings": timings,
+        }
+        attrs = {
+            "rsmb_version": VERSION,
+            "run_key": key,
+            "parameters": dataclasses.asdict(config),
+            "pose_axes": list(axes),
+            "pose_units": [ops.AXIS_UNITS[a] for a in axes],
+            "tile_grid": {"shape": list(shape), "tile": grid.tile, "halo": grid.halo,
+                          "tiles": list(grid.grid_shape), "row_edges": grid.row_edges.tolist(),
+                          "col_edges": grid.col_edges.tolist()},
+            "camera": {"focal_px": camera.focal, "center_xy": list(camera.center_xy)},
+            "inputs": {"reference": {"path": ref_info.path, "sha256": ref_info.sha256},
+                       "distorted": {"path": dist_info.path, "sha256": dist_info.sha256}},
+            "scheduler": scheduler,
+            "summary": summary,
+            **dist_info.geo.to_attrs(),
+        }
+        if not ref_info.geo.is_empty:
+            attrs["reference_georeferencing"] = ref_info.geo.to_attrs()
+        group.attrs.update(tiles.jsonable(attrs))
+        group["trajectory"].attrs.update({"pose_axes": list(axes), "units": [ops.AXIS_UNITS[a] for a in axes]})
+        for name in ("work", "ingest"):
+            del group[name]
+        final = tiles.finalize_result_store(store, output, overwrite=overwrite)
+        if geotiff is not None:
+            _write_geotiffs(final, geotiff, ref_info, dist_info)
+        log.info("wrote %s: %d changed px (threshold %.3f), %.2f MP/s", final, changed, threshold,
+                 summary["megapixels_per_s"])
+        return summary
+    except BaseException:
+        if not resume_safe(group):
+            tiles.abort_result_store(store)
+        raise
+
+
+def resume_safe(group):
+    """An interrupted run keeps its partial store when some tile finished, so that
+    ``--resume`` can continue it; otherwise the partial store is removed."""
+    try:
+        return bool(group["work/tile_done"][:].any())
+    except Exception:  # noqa: BLE001 - store already gone or unreadable
+        return False
+
+
+def _write_geotiffs(store, directory, ref_info, dist_info):
+    from pathlib import Path
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    group = tiles.open_result_store(store)
+    tiles.write_geotiff(directory / "change_mask.tif", group["change_mask"][:], dist_info.geo)
+    tiles.write_geotiff(directory / "change_mask_reference.tif", group["change_mask_reference"][:], ref_info.geo)
+    tiles.write_geotiff(directory / "change_score.tif", group["change_score"][:], dist_info.geo)

@@ -1,0 +1,65 @@
+"""``rsmb evaluate``: scores of an output store against a synthetic truth."""
+
+import numpy as np
+
+import ops
+import tiles
+from ops import InputError
+
+from ._synth import read_truth
+
+__all__ = ["evaluate"]
+
+
+def _tile_means(values, row_edges, col_edges):
+    out = np.zeros((len(row_edges) - 1, len(col_edges) - 1))
+    for i in range(out.shape[0]):
+        for j in range(out.shape[1]):
+            out[i, j] = values[row_edges[i]:row_edges[i + 1], col_edges[j]:col_edges[j + 1]].mean()
+    return out
+
+
+def evaluate(store, truth_dir):
+    """Metrics of a ``rsmb detect`` store against ``rsmb synth`` truth.
+
+    Returns
+    -------
+    dict
+        ``changes`` and ``changes_reference`` (precision, recall, PWC, F-measure,
+        IoU, pooled over the whole image), ``trajectory`` (RMSE and max error per
+        estimated axis, rows whose pixels were all valid), ``gain`` (per-tile
+        relative error) and ``registration_rmse_255`` (registered against the
+        capture, outside true changes, 0..255 units; needs the capture, so it is
+        computed when the store's input path still exists).
+    """
+    group = tiles.open_result_store(store)
+    truth = read_truth(truth_dir)
+    mask = group["change_mask"][:] > 0
+    if mask.shape != truth["change_mask"].shape:
+        raise InputError(f"{truth_dir}: truth of shape {truth['change_mask'].shape} does not match the store's "
+                         f"{mask.shape}")
+    attrs = group.attrs.asdict()
+    axes = list(group["trajectory"].attrs["pose_axes"])
+    out = {
+        "changes": ops.confusion(mask, truth["change_mask"]).as_dict(),
+        "changes_reference": ops.confusion(group["change_mask_reference"][:] > 0,
+                                           truth["change_mask_reference"]).as_dict(),
+    }
+    idx = [ops.POSE_AXES.index(a) for a in axes]
+    registered = group["registered"][:]
+    rows_ok = np.isfinite(registered).mean(axis=1) > 0.5
+    out["trajectory"] = ops.trajectory_rmse(group["trajectory"][:].astype(np.float64), truth["trajectory"][:, idx],
+                                            axes=axes, valid_rows=rows_ok)
+    grid = attrs["tile_grid"]
+    true_gain = _tile_means(truth["gain"], grid["row_edges"], grid["col_edges"])
+    est = group["gain"][:].astype(np.float64)
+    rel = np.abs(est - true_gain) / true_gain
+    out["gain"] = {"max_relative_error": float(np.nanmax(rel)), "mean_relative_error": float(np.nanmean(rel)),
+                   "estimated": est.round(4).tolist(), "true": true_gain.round(4).tolist()}
+    try:
+        distorted = tiles.read_image(attrs["inputs"]["distorted"]["path"]).data
+        keep = np.isfinite(registered) & ~truth["change_mask"]
+        out["registration_rmse_255"] = float(np.sqrt(np.mean((registered[keep] - distorted[keep]) ** 2)) * 255)
+    except InputError:
+        out["registration_rmse_255"] = None
+    return out

@@ -1,0 +1,123 @@
+"""Running tile tasks on a dask scheduler, with progress.
+
+``--scheduler`` takes ``threads`` (default), ``processes``, ``synchronous``, a
+``tcp://`` address of a dask.distributed scheduler, or the path of a scheduler
+file.  Local schedulers need no server.  Each worker thread runs one OpenCV
+thread (set in every task) so that tiles, not OpenCV, use the cores.
+"""
+
+import contextlib
+import logging
+import os
+import sys
+import time
+
+import dask
+import dask.callbacks
+
+from ops import ParameterError
+
+__all__ = ["SCHEDULERS", "Runner", "open_runner"]
+
+SCHEDULERS = ("threads", "processes", "synchronous")
+log = logging.getLogger("rsmb")
+
+
+def one_cv_thread():
+    """Called at the start of every task: one OpenCV thread per worker thread."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+class _Progress:
+    """A bar on a terminal, a log line every ``interval`` seconds otherwise."""
+
+    def __init__(self, label, total, *, interval=10.0, stream=None):
+        self.label, self.total, self.done = label, total, 0
+        self.stream = stream or sys.stderr
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.start = self.last = time.monotonic()
+        self.interval = interval
+
+    def step(self, n=1):
+        self.done += n
+        now = time.monotonic()
+        if self.tty:
+            width = 30
+            filled = int(width * self.done / max(self.total, 1))
+            self.stream.write(f"\r{self.label:<12} [{'#' * filled}{'.' * (width - filled)}] "
+                              f"{self.done}/{self.total} {now - self.start:6.1f}s")
+            if self.done >= self.total:
+                self.stream.write("\n")
+            self.stream.flush()
+        elif now - self.last >= self.interval or self.done >= self.total:
+            self.last = now
+            log.info("%s: %d/%d tasks done (%.1f s)", self.label, self.done, self.total, now - self.start)
+
+
+class Runner:
+    """Runs lists of independent tasks (function, args) on one scheduler."""
+
+    def __init__(self, scheduler, client=None, workers=None):
+        self.scheduler = scheduler
+        self.client = client
+        self.workers = workers
+        self.tasks_run = 0
+
+    def map(self, label, func, argument_lists):
+        """``[func(*args) for args in argument_lists]`` on the scheduler, in order."""
+        argument_lists = list(argument_lists)
+        if not argument_lists:
+            return []
+        self.tasks_run += len(argument_lists)
+        progress = _Progress(label, len(argument_lists))
+        if self.client is not None:
+            from distributed import as_completed
+
+            futures = [self.client.submit(_call, func, args, pure=False) for args in argument_lists]
+            for _ in as_completed(futures):
+                progress.step()
+            return self.client.gather(futures)
+        tasks = [dask.delayed(_call, pure=False)(func, args) for args in argument_lists]
+        with _DaskProgress(progress):
+            kw = {"num_workers": self.workers} if self.workers and self.scheduler != "synchronous" else {}
+            return list(dask.compute(*tasks, scheduler=self.scheduler, **kw))
+
+
+def _call(func, args):
+    one_cv_thread()
+    return func(*args)
+
+
+class _DaskProgress(dask.callbacks.Callback):
+    def __init__(self, progress):
+        super().__init__()
+        self.progress = progress
+
+    def _posttask(self, key, result, dsk, state, worker_id):
+        self.progress.step()
+
+
+@contextlib.contextmanager
+def open_runner(scheduler="threads", *, workers=None):
+    """A :class:`Runner` for ``scheduler`` (see the module docstring).
+
+    Raises
+    ------
+    ParameterError
+        For an unknown scheduler name or a scheduler file that does not exist.
+    """
+    if scheduler in SCHEDULERS:
+        yield Runner(scheduler, workers=workers)
+        return
+    if scheduler.startswith("tcp://") or os.path.isfile(scheduler):
+        from distributed import Client
+
+        kw = {"address": scheduler} if scheduler.startswith("tcp://") else {"scheduler_file": scheduler}
+        with Client(timeout="30s", **kw) as client:
+            client.run(one_cv_thread)
+            yield Runner("distributed", client=client)
+        return
+    raise ParameterError(f"scheduler: expected one of {SCHEDULERS}, a tcp:// address or a scheduler file, "
+                         f"got {scheduler!r}")

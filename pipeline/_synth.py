@@ -1,0 +1,102 @@
+"""``rsmb synth``: write a synthetic pair and its truth to a directory.
+
+Files: ``reference.<ext>``, ``distorted.<ext>`` (16-bit PNG, GeoTIFF or float32
+NPY), ``truth/change_mask.png``, ``truth/change_mask_reference.png`` (0/255),
+``truth/trajectory.csv`` (per-row centroid pose, all six axes),
+``truth/gain.npy`` (per-pixel gain) and ``truth/truth.json`` (everything else).
+GeoTIFFs carry a made-up projected georeferencing (UTM 18N, 0.5 m pixels) so
+that the geospatial path can be exercised end to end.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+import ops
+import tiles
+from ops import InputError
+
+__all__ = ["FORMATS", "write_pair", "read_truth", "DEMO_GEO"]
+
+FORMATS = ("png", "tif", "npy")
+DEMO_GEO = dict(crs="EPSG:32618", transform=(0.5, 0.0, 500000.0, 0.0, -0.5, 4500000.0))
+
+
+def _geo():
+    from rasterio.crs import CRS
+
+    return tiles.GeoInfo(crs=CRS.from_string(DEMO_GEO["crs"]).to_wkt(version="WKT2_2019"),
+                         transform=DEMO_GEO["transform"], nodata=None)
+
+
+def _write_image(path, image, fmt):
+    if fmt == "npy":
+        np.save(path, image.astype(np.float32))
+        return
+    data = (np.clip(image, 0.0, 1.0) * 65535.0 + 0.5).astype(np.uint16)
+    if fmt == "tif":
+        import rasterio
+
+        geo = _geo()
+        h, w = data.shape
+        with rasterio.open(path, "w", driver="GTiff", height=h, width=w, count=1, dtype="uint16", crs=geo.crs,
+                           transform=rasterio.Affine(*geo.transform), tiled=True, blockxsize=256, blockysize=256,
+                           compress="deflate") as ds:
+            ds.write(data, 1)
+        return
+    import cv2
+
+    if not cv2.imwrite(str(path), data):
+        raise InputError(f"{path}: could not write the image")
+
+
+def write_pair(out_dir, pair, *, fmt="png", overwrite=False, meta=None):
+    """Write a :class:`ops.SyntheticPair` to ``out_dir``; returns the image paths."""
+    import cv2
+
+    if fmt not in FORMATS:
+        raise ops.ParameterError(f"format: expected one of {FORMATS}, got {fmt!r}")
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise InputError(f"{out}: output exists and is not empty; pass --overwrite to replace it")
+    (out / "truth").mkdir(parents=True, exist_ok=True)
+    ref_path, dist_path = out / f"reference.{fmt}", out / f"distorted.{fmt}"
+    _write_image(ref_path, pair.reference, fmt)
+    _write_image(dist_path, pair.distorted, fmt)
+    cv2.imwrite(str(out / "truth" / "change_mask.png"), pair.change_mask.astype(np.uint8) * 255)
+    cv2.imwrite(str(out / "truth" / "change_mask_reference.png"), pair.change_mask_reference.astype(np.uint8) * 255)
+    np.savetxt(out / "truth" / "trajectory.csv", pair.trajectory, delimiter=",", header=",".join(ops.POSE_AXES),
+               comments="", fmt="%.6f")
+    np.save(out / "truth" / "gain.npy", pair.gain.astype(np.float32))
+    info = {"shape": list(pair.reference.shape), "focal_px": pair.camera.focal,
+            "center_xy": list(pair.camera.center_xy), "pose_axes": list(ops.POSE_AXES),
+            "gain_mean": float(pair.gain.mean()), "changed_fraction": float(pair.change_mask.mean()),
+            **(meta or {})}
+    (out / "truth" / "truth.json").write_text(json.dumps(tiles.jsonable(info), indent=2))
+    return ref_path, dist_path
+
+
+def read_truth(truth_dir):
+    """The truth a :func:`write_pair` directory holds, as a dict of arrays.
+
+    Raises
+    ------
+    InputError
+        If the directory or one of its files is missing.
+    """
+    import cv2
+
+    base = Path(truth_dir)
+    base = base / "truth" if (base / "truth").is_dir() else base
+    need = ["change_mask.png", "change_mask_reference.png", "trajectory.csv", "gain.npy", "truth.json"]
+    for name in need:
+        if not (base / name).is_file():
+            raise InputError(f"{base / name}: truth file missing (expected the layout written by rsmb synth)")
+    return {
+        "change_mask": cv2.imread(str(base / "change_mask.png"), cv2.IMREAD_UNCHANGED) > 0,
+        "change_mask_reference": cv2.imread(str(base / "change_mask_reference.png"), cv2.IMREAD_UNCHANGED) > 0,
+        "trajectory": np.loadtxt(base / "trajectory.csv", delimiter=",", skiprows=1, ndmin=2),
+        "gain": np.load(base / "gain.npy"),
+        "info": json.loads((base / "truth.json").read_text()),
+    }

@@ -1,0 +1,222 @@
+"""The ``rsmb`` command line: thin wrappers, one library call per subcommand.
+
+Exit codes: 0 success, 2 bad input (one line naming the file or parameter and
+the problem), 1 anything else.
+"""
+
+import json
+import logging
+import sys
+
+import click
+
+import ops
+from ops import RSMBError
+
+__all__ = ["main", "cli"]
+
+log = logging.getLogger("rsmb")
+
+
+def _floats(text, name, count=None):
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise click.BadParameter(f"expected comma-separated numbers, got {text!r}", param_hint=name) from None
+    if count is not None and len(values) not in (1, count):
+        raise click.BadParameter(f"expected 1 or {count} values (one per axis), got {len(values)}", param_hint=name)
+    return values if len(values) == count or count is None else values * count
+
+
+def _axis_defaults(axes, table):
+    return tuple(table[a] for a in axes)
+
+
+_HALF_WIDTH = {"tx": 3.0, "ty": 3.0, "s": 0.02, "rx": 0.5, "ry": 0.5, "rz": 2.0}
+_STEP = {"tx": 1.0, "ty": 1.0, "s": 0.01, "rx": 0.25, "ry": 0.25, "rz": 0.5}
+_SEARCH = {"tx": 20.0, "ty": 20.0, "s": 0.0, "rx": 0.0, "ry": 0.0, "rz": 3.0}
+
+
+def registration_options(func):
+    """Options shared by commands that run the method (defined once)."""
+    options = [
+        click.option("--axes", default="tx,ty,rz", show_default=True,
+                     help=f"Pose axes searched, from {','.join(ops.POSE_AXES)}."),
+        click.option("--half-width", default=None,
+                     help="Row neighbourhood half-width b per axis (px, 1 or deg). "
+                          "Default tx,ty 3 px, rz 2 deg (the paper's N(c,3,1), N(c,2,0.5)); widened "
+                          "automatically to the blur found in the middle rows."),
+        click.option("--step", default=None, help="Grid step s per axis. Default tx,ty 1 px, rz 0.5 deg."),
+        click.option("--search", default=None,
+                     help="Largest motion the initial wide search covers (+-) per axis. Default tx,ty 20 px, "
+                          "rz 3 deg."),
+        click.option("--shutter", type=click.Choice(["rolling", "global"]), default="rolling", show_default=True,
+                     help="'global' solves one weight vector for every row (captures known to be GS)."),
+        click.option("--solver", type=click.Choice(["fast", "exact"]), default="fast", show_default=True,
+                     help="Row solver: the fast active-set solver or the exact cvxpy (CLARABEL) oracle "
+                          "(seconds per row; small images only)."),
+        click.option("--lambda-w", type=float, default=1e-3, show_default=True,
+                     help="Weight of ||w||_1 in eq. 13 (intensities in [0, 1])."),
+        click.option("--lambda-chi", type=float, default=0.02, show_default=True,
+                     help="Weight of ||chi||_1 in eq. 13; residuals above half of it count as change."),
+        click.option("--threshold", default="noise", show_default=True,
+                     help="Change threshold: 'noise' (k robust sigmas of the residual), 'kapur' (the paper's "
+                          "entropy threshold) or a number (score units, intensities in [0, 1])."),
+        click.option("--min-area", type=int, default=20, show_default=True,
+                     help="Smallest change kept, pixels."),
+        click.option("--focal", type=float, default=None,
+                     help="Focal length in pixels of the whole image. Default 1.2 x the larger side."),
+    ]
+    for option in reversed(options):
+        func = option(func)
+    return func
+
+
+def build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold, min_area,
+                 focal, tile=512, overlap=None):
+    """A :class:`pipeline.DetectConfig` from command-line values."""
+    from ._detect import DetectConfig
+
+    axes = tuple(a.strip() for a in axes.split(",") if a.strip())
+    unknown = [a for a in axes if a not in ops.POSE_AXES]
+    if unknown:
+        raise click.BadParameter(f"unknown axes {unknown}; expected names from {ops.POSE_AXES}", param_hint="--axes")
+    reg = ops.RegistrationParams(
+        axes=axes,
+        half_width=_floats(half_width, "--half-width", len(axes)) if half_width else _axis_defaults(axes, _HALF_WIDTH),
+        step=_floats(step, "--step", len(axes)) if step else _axis_defaults(axes, _STEP),
+        search=_floats(search, "--search", len(axes)) if search else _axis_defaults(axes, _SEARCH),
+        shutter=shutter, solver=solver, lambda_w=lambda_w, lambda_chi=lambda_chi)
+    changes = ops.ChangeParams(threshold=threshold, min_area=min_area)
+    return DetectConfig(registration=reg, changes=changes, tile=tile, overlap=overlap, focal=focal)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("-v", "--verbose", count=True, help="More log output (-vv for debug).")
+@click.option("-q", "--quiet", is_flag=True, help="Only errors.")
+@click.version_option(package_name="rsmb")
+def cli(verbose, quiet):
+    """Registration and change detection under rolling shutter and motion blur."""
+    level = logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
+    logging.getLogger("distributed").setLevel(max(level, logging.WARNING))
+
+
+@cli.command()
+@click.argument("reference", type=click.Path(dir_okay=True))
+@click.argument("distorted", type=click.Path(dir_okay=True))
+@click.option("-o", "--output", required=True, type=click.Path(), help="Output zarr store.")
+@registration_options
+@click.option("--tile-size", type=int, default=512, show_default=True, help="Core tile side, pixels.")
+@click.option("--overlap", type=int, default=None,
+              help="Tile halo, pixels. Default: the largest displacement the search range allows.")
+@click.option("--scheduler", default="threads", show_default=True,
+              help="threads, processes, synchronous, a tcp:// address or a scheduler file.")
+@click.option("--workers", type=int, default=None, help="Workers of a local scheduler (default: one per core).")
+@click.option("--resume", is_flag=True, help="Continue an interrupted run: only missing tiles run.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output store.")
+@click.option("--geotiff", type=click.Path(file_okay=False), default=None,
+              help="Also write the masks as GeoTIFFs into this directory.")
+@click.option("--json", "as_json", is_flag=True, help="Print the run summary as JSON.")
+def detect(reference, distorted, output, axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi,
+           threshold, min_area, focal, tile_size, overlap, scheduler, workers, resume, overwrite, geotiff, as_json):
+    """Register DISTORTED against REFERENCE and write change masks to a zarr store."""
+    from ._detect import detect as run
+
+    config = build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold,
+                          min_area, focal, tile_size, overlap)
+    summary = run(reference, distorted, output, config=config, scheduler=scheduler, workers=workers,
+                  overwrite=overwrite, resume=resume, geotiff=geotiff)
+    _print_summary(summary, as_json)
+
+
+def _print_summary(summary, as_json):
+    if as_json:
+        click.echo(json.dumps(summary, indent=2, default=str))
+        return
+    t = summary["timings"]
+    click.echo(f"{summary['output']}: {summary['changed_pixels']} changed px in {summary['components']} "
+               f"component(s), threshold {summary['threshold']:.3f}, gain {summary['gain_min']:.3f}.."
+               f"{summary['gain_max']:.3f}, {summary['tiles'][0]}x{summary['tiles'][1]} tiles, "
+               f"{t['total_s']:.1f} s ({summary['megapixels_per_s']:.2f} MP/s)")
+
+
+@cli.command()
+@click.argument("out_dir", type=click.Path(file_okay=False))
+@click.option("--size", default="512,512", show_default=True, help="H,W of the images.")
+@click.option("--motion", type=click.Choice(sorted(ops.MOTIONS)), default="inplane", show_default=True)
+@click.option("--shutter", type=click.Choice(["rolling", "global"]), default="rolling", show_default=True)
+@click.option("--exposure", type=float, default=None, help="Row exposure in row periods (default H/16).")
+@click.option("--scale", type=float, default=1.0, show_default=True, help="Multiplies every motion amplitude.")
+@click.option("--gain", default="1.0", show_default=True,
+              help="Illumination gain, or LEFT,RIGHT for a gain varying across the columns.")
+@click.option("--changes", type=int, default=8, show_default=True, help="Number of pasted objects.")
+@click.option("--noise", type=float, default=0.002, show_default=True, help="Noise sigma, intensities in [0, 1].")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--format", "fmt", type=click.Choice(["png", "tif", "npy"]), default="png", show_default=True,
+              help="png (16 bit), tif (GeoTIFF with a made-up UTM georeferencing) or npy (float32).")
+@click.option("--overwrite", is_flag=True, help="Write into a non-empty directory.")
+def synth(out_dir, size, motion, shutter, exposure, scale, gain, changes, noise, seed, fmt, overwrite):
+    """Make a reference, a distorted capture and the truth in OUT_DIR."""
+    from ._synth import write_pair
+
+    shape = tuple(int(v) for v in _floats(size, "--size"))
+    if len(shape) != 2:
+        raise click.BadParameter("expected H,W", param_hint="--size")
+    gains = _floats(gain, "--gain")
+    pair = ops.synthesize_pair(shape, motion=motion, shutter=shutter, exposure=exposure, scale=scale,
+                               gain=gains[0] if len(gains) == 1 else gains, changes=changes, noise=noise, seed=seed)
+    meta = {"motion": motion, "shutter": shutter, "exposure": exposure, "scale": scale, "gain": gains,
+            "changes": changes, "noise": noise, "seed": seed}
+    ref, dist = write_pair(out_dir, pair, fmt=fmt, overwrite=overwrite, meta=meta)
+    click.echo(f"wrote {ref}, {dist} and the truth in {out_dir}/truth")
+
+
+@cli.command()
+@click.argument("store", type=click.Path(exists=False))
+@click.argument("truth_dir", type=click.Path(exists=False))
+@click.option("--json", "as_json", is_flag=True, help="Print JSON.")
+def evaluate(store, truth_dir, as_json):
+    """Scores of a detect STORE against the truth of `rsmb synth`."""
+    from ._evaluate import evaluate as run
+
+    result = run(store, truth_dir)
+    if as_json:
+        click.echo(json.dumps(result, indent=2, default=str))
+        return
+    for key in ("changes", "changes_reference"):
+        m = result[key]
+        click.echo(f"{key:18s} F {m['f_measure']:.3f}  precision {m['precision']:.3f}  recall {m['recall']:.3f}  "
+                   f"PWC {m['pwc']:.3f} %  IoU {m['iou']:.3f}")
+    for axis, m in result["trajectory"].items():
+        click.echo(f"trajectory {axis:7s} RMSE {m['rmse']:.3f}  max {m['max_abs']:.3f}")
+    click.echo(f"gain               max relative error {result['gain']['max_relative_error']:.4f}")
+    if result["registration_rmse_255"] is not None:
+        click.echo(f"registration RMSE  {result['registration_rmse_255']:.2f} (0..255, outside true changes)")
+
+
+def main(argv=None):
+    """Entry point: runs the CLI and maps errors to exit codes."""
+    try:
+        cli.main(args=argv, prog_name="rsmb", standalone_mode=False)
+    except click.exceptions.Exit as exc:
+        return exc.exit_code
+    except click.ClickException as exc:
+        exc.show()
+        return exc.exit_code
+    except click.exceptions.Abort:
+        click.echo("aborted", err=True)
+        return 1
+    except RSMBError as exc:
+        click.echo(f"rsmb: error: {exc}", err=True)
+        return 2
+    except Exception as exc:  # noqa: BLE001 - the CLI's last resort
+        log.debug("unexpected error", exc_info=True)
+        click.echo(f"rsmb: unexpected error: {type(exc).__name__}: {exc} (rerun with -vv for the traceback)",
+                   err=True)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
