@@ -7,11 +7,13 @@ Pure numpy (with numba-compiled inner loops); no I/O, no dask, no zarr.
 from ._camera import AXIS_UNITS, POSE_AXES, Camera, full_poses, pose_homographies
 from ._changes import (
     ChangeParams,
+    ChangeResult,
     ScoreHistogram,
     change_candidates,
     change_mask,
     change_threshold,
     changes_to_reference,
+    detect_changes,
     fill_holes,
     keep_components,
     label_components,
@@ -22,7 +24,7 @@ from ._forward import CameraPath, RenderResult, render
 from ._metrics import ConfusionCounts, confusion, trajectory_rmse
 from ._oracle import ExactRowSolution, huber_objective, optimal_chi, row_objective, solve_row_exact
 from ._posespace import PoseSpace
-from ._register import Registration, RegistrationParams, register
+from ._register import Registration, RegistrationParams, auto_step, register
 from ._rowsolve import solve_row_fast
 from ._scene import aerial_scene, paste_changes
 from ._synth import MOTIONS, SyntheticPair, motion_path, synthesize_pair
@@ -41,6 +43,7 @@ __all__ = [
     "RegistrationParams",
     "Registration",
     "register",
+    "auto_step",
     "solve_row_fast",
     "solve_row_exact",
     "ExactRowSolution",
@@ -48,6 +51,8 @@ __all__ = [
     "huber_objective",
     "optimal_chi",
     "ChangeParams",
+    "ChangeResult",
+    "detect_changes",
     "ScoreHistogram",
     "score_histogram",
     "change_threshold",

@@ -31,7 +31,8 @@ from ._errors import ParameterError
 from ._threshold import clean_mask, kapur_threshold_histogram
 
 __all__ = ["ChangeParams", "ScoreHistogram", "score_histogram", "change_threshold", "change_candidates",
-           "label_components", "keep_components", "fill_holes", "change_mask", "changes_to_reference"]
+           "label_components", "keep_components", "fill_holes", "change_mask", "changes_to_reference",
+           "ChangeResult", "detect_changes"]
 
 THRESHOLD_METHODS = ("noise", "kapur")
 _RESIDUAL_EDGES = np.concatenate([[0.0], np.geomspace(1e-6, 4.0, 1024)])
@@ -281,3 +282,49 @@ def changes_to_reference(mask, trajectory, *, axes, camera, reference_shape, ref
     return _lookup(np.asarray(mask, dtype=np.uint8), np.ascontiguousarray(hom), tuple(int(v) for v in reference_shape),
                    np.asarray(reference_origin_yx, dtype=np.float64), np.asarray(distorted_origin_yx, dtype=np.float64),
                    int(iterations))
+
+
+@dataclass(frozen=True)
+class ChangeResult:
+    """Changes of one whole window (see :func:`detect_changes`).
+
+    Attributes
+    ----------
+    score : ndarray, shape (H, W), float32
+        ``|chi|``.
+    mask : ndarray of bool, shape (H, W)
+        Changes in the distorted grid.
+    mask_reference : ndarray of bool, shape (H, W)
+        Changes in the reference grid.
+    threshold : float
+    """
+
+    score: np.ndarray
+    mask: np.ndarray
+    mask_reference: np.ndarray
+    threshold: float
+
+
+def detect_changes(registration, distorted, *, camera, params=ChangeParams()):
+    """Change masks of a whole image from its :class:`ops.Registration`.
+
+    The tiled pipeline computes the same from the same pieces, tile by tile.
+
+    Parameters
+    ----------
+    registration : Registration
+        Of ``distorted`` against a reference of the same shape (origins 0).
+    distorted : ndarray, shape (H, W)
+    camera : Camera
+
+    Returns
+    -------
+    ChangeResult
+    """
+    score = np.abs(registration.chi)
+    residual = np.where(registration.valid, distorted - registration.registered, 0.0)
+    threshold = change_threshold(score_histogram(residual, score, registration.valid), params=params)
+    mask = change_mask(score, threshold, params=params)
+    ref = changes_to_reference(mask, registration.trajectory, axes=registration.axes, camera=camera,
+                               reference_shape=mask.shape)
+    return ChangeResult(score, mask, ref > 0, threshold)

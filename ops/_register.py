@@ -9,6 +9,7 @@ not trusted for the trajectory: their centroid is interpolated and they are
 solved afterwards around it.
 """
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import cv2
@@ -31,9 +32,12 @@ class RegistrationParams:
     ----------
     axes : tuple of str
         Pose axes searched.
-    half_width, step : tuple of float
-        Row neighbourhood ``N(c, b, s)`` around the neighbour's centroid
-        (the paper's tx, ty N(c, 3, 1) px and rz N(c, 2, 0.5) deg by default).
+    half_width, step : tuple of float or None
+        Row neighbourhood ``N(c, b, s)`` around the neighbour's centroid.  None
+        means automatic: a step moves the farthest pixel by about one pixel
+        (:func:`auto_step`) and the half-width is three steps, so tx, ty
+        N(c, 3, 1) px as in the paper, and rz steps that shrink as images grow
+        (the paper's rz N(c, 2, 0.5) deg suits its 256 x 384 images only).
     search : tuple of float
         Largest motion the wide initial search covers, per axis (+-).
     shutter : {"rolling", "global"}
@@ -59,8 +63,8 @@ class RegistrationParams:
     """
 
     axes: tuple = ("tx", "ty", "rz")
-    half_width: tuple = (3.0, 3.0, 2.0)
-    step: tuple = (1.0, 1.0, 0.5)
+    half_width: tuple = (3.0, 3.0, None)
+    step: tuple = (1.0, 1.0, None)
     search: tuple = (20.0, 20.0, 3.0)
     shutter: str = "rolling"
     solver: str = "fast"
@@ -74,12 +78,18 @@ class RegistrationParams:
     max_add: int = 8
 
     def __post_init__(self):
-        space = PoseSpace(self.axes, self.half_width, self.step)  # validates
-        object.__setattr__(self, "axes", space.axes)
-        object.__setattr__(self, "half_width", space.half_width)
-        object.__setattr__(self, "step", space.step)
-        search = tuple(float(v) for v in np.broadcast_to(self.search, len(space.axes)))
+        axes = tuple(self.axes)
+        n = len(axes)
+        hw = _per_axis(self.half_width, n, "half_width")
+        st = _per_axis(self.step, n, "step")
+        search = _per_axis(self.search, n, "search")
+        if None in search:
+            raise ParameterError(f"search: expected a number per axis, got {self.search}")
+        object.__setattr__(self, "axes", axes)
+        object.__setattr__(self, "half_width", hw)
+        object.__setattr__(self, "step", st)
         object.__setattr__(self, "search", search)
+        PoseSpace(axes, [1.0 if v is None else v for v in hw], [1.0 if v is None else v for v in st])  # validates
         if self.solver not in ("fast", "exact"):
             raise ParameterError(f"solver: expected 'fast' or 'exact', got {self.solver!r}")
         if self.shutter not in ("rolling", "global"):
@@ -88,8 +98,47 @@ class RegistrationParams:
             raise ParameterError(f"lambda_w >= 0 and lambda_chi > 0 expected, got {self.lambda_w}, {self.lambda_chi}")
 
     @property
+    def is_resolved(self):
+        return None not in self.half_width and None not in self.step
+
+    def resolved(self, camera):
+        """These parameters with every ``None`` step and half-width filled in for
+        ``camera`` (see :func:`auto_step`); half-widths default to 3 steps."""
+        step = tuple(auto_step(a, camera) if s is None else s for a, s in zip(self.axes, self.step))
+        half = tuple(3.0 * s if b is None else b for b, s in zip(self.half_width, step))
+        return dataclasses.replace(self, step=step, half_width=half)
+
+    @property
     def space(self):
+        if not self.is_resolved:
+            raise ParameterError("RegistrationParams: steps are still 'auto'; call resolved(camera) first")
         return PoseSpace(self.axes, self.half_width, self.step)
+
+
+def _per_axis(values, n, name):
+    values = tuple(values) if isinstance(values, (tuple, list)) else (values,) * n
+    if len(values) == 1:
+        values = values * n
+    if len(values) != n:
+        raise ParameterError(f"{name}: expected one value per axis ({n}), got {values}")
+    return tuple(None if v is None else float(v) for v in values)
+
+
+def auto_step(axis, camera):
+    """Grid step of ``axis`` that moves the farthest pixel of the image by about
+    one pixel (METHOD.md: neighbouring warps one pixel apart).
+
+    tx, ty: 1 px; rz: 1 / r rad with r the distance of the farthest corner from
+    the principal point; rx, ry: 1 / f rad; s: 1 / r.
+    """
+    radius = float(np.hypot(camera.center_xy[0] + 0.5, camera.center_xy[1] + 0.5))
+    if axis in ("tx", "ty"):
+        return 1.0
+    if axis == "rz":
+        return float(np.degrees(1.0 / radius))
+    if axis in ("rx", "ry"):
+        return float(np.degrees(1.0 / camera.focal))
+    return 1.0 / radius
 
 
 @dataclass
@@ -273,8 +322,14 @@ def _coarse_search(problem, params, rows):
         return np.zeros(len(axes))
     rz_values = [0.0]
     if "rz" in axes and search["rz"] > 0:
-        n = int(np.floor(search["rz"] / step["rz"]))
-        rz_values = list(np.arange(-n, n + 1) * step["rz"])
+        # candidates close enough that the translation search bridges them at
+        # the band's farthest pixel, and that the band tilts < 2 px between them
+        corner = np.hypot(np.array([problem.dx, problem.dx + width]) - problem.cx,
+                          np.array([r0, r1]) + problem.dy - problem.cy).max()
+        bridge = min(2.0 / max(width / 2.0, 1.0), max(min(margin_x, margin_y) - 1, 1) / 2.0 / max(corner, 1.0))
+        coarse = max(np.degrees(bridge), step["rz"])
+        n = int(np.ceil(search["rz"] / coarse))
+        rz_values = list(np.linspace(-search["rz"], search["rz"], 2 * n + 1))
     band = np.arange(r0 - margin_y, r1 + margin_y)
     best = (-np.inf, 0.0, 0.0, 0.0)
     buf = np.empty((1, width), dtype=np.float32)
@@ -361,8 +416,8 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
     """
     import time
 
-    params = params or RegistrationParams()
     camera = camera or Camera.for_shape(distorted.shape)
+    params = (params or RegistrationParams()).resolved(camera)
     ref = np.array(reference, dtype=np.float32)
     if reference_valid is not None:
         ref[~np.asarray(reference_valid, bool)] = np.nan

@@ -253,7 +253,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                          f"{ref_info.path} {ref_info.shape}; give images of the same size")
     shape = dist_info.shape
     camera = ops.Camera.for_shape(shape, focal=config.focal)
-    params = config.registration
+    params = config.registration.resolved(camera)
     halo = config.overlap if config.overlap is not None else default_overlap(params, camera, shape)
     grid = tiles.TileGrid(shape, config.tile, halo)
     axes = params.axes

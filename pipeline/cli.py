@@ -18,22 +18,23 @@ __all__ = ["main", "cli"]
 log = logging.getLogger("rsmb")
 
 
-def _floats(text, name, count=None):
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        raise click.BadParameter(f"expected comma-separated numbers, got {text!r}", param_hint=name) from None
+def _floats(text, name, count=None, allow_auto=False):
+    """Comma-separated numbers (``auto`` -> None when allowed), one per axis or one for all."""
+    values = []
+    for token in text.split(","):
+        token = token.strip()
+        if allow_auto and token == "auto":
+            values.append(None)
+            continue
+        try:
+            values.append(float(token))
+        except ValueError:
+            raise click.BadParameter(f"expected comma-separated numbers, got {text!r}", param_hint=name) from None
     if count is not None and len(values) not in (1, count):
         raise click.BadParameter(f"expected 1 or {count} values (one per axis), got {len(values)}", param_hint=name)
-    return values if len(values) == count or count is None else values * count
+    return tuple(values) if count is None or len(values) == count else tuple(values) * count
 
 
-def _axis_defaults(axes, table):
-    return tuple(table[a] for a in axes)
-
-
-_HALF_WIDTH = {"tx": 3.0, "ty": 3.0, "s": 0.02, "rx": 0.5, "ry": 0.5, "rz": 2.0}
-_STEP = {"tx": 1.0, "ty": 1.0, "s": 0.01, "rx": 0.25, "ry": 0.25, "rz": 0.5}
 _SEARCH = {"tx": 20.0, "ty": 20.0, "s": 0.0, "rx": 0.0, "ry": 0.0, "rz": 3.0}
 
 
@@ -42,11 +43,13 @@ def registration_options(func):
     options = [
         click.option("--axes", default="tx,ty,rz", show_default=True,
                      help=f"Pose axes searched, from {','.join(ops.POSE_AXES)}."),
-        click.option("--half-width", default=None,
-                     help="Row neighbourhood half-width b per axis (px, 1 or deg). "
-                          "Default tx,ty 3 px, rz 2 deg (the paper's N(c,3,1), N(c,2,0.5)); widened "
-                          "automatically to the blur found in the middle rows."),
-        click.option("--step", default=None, help="Grid step s per axis. Default tx,ty 1 px, rz 0.5 deg."),
+        click.option("--half-width", default="auto", show_default=True,
+                     help="Row neighbourhood half-width b per axis (px, 1 or deg), or 'auto': 3 steps "
+                          "(tx,ty N(c,3,1) px as in the paper); widened automatically to the blur found in "
+                          "the middle rows."),
+        click.option("--step", default="auto", show_default=True,
+                     help="Grid step s per axis, or 'auto': 1 px for tx,ty; for rotations the angle that "
+                          "moves the farthest pixel by 1 px (the paper's rz step 0.5 deg: --step 1,1,0.5)."),
         click.option("--search", default=None,
                      help="Largest motion the initial wide search covers (+-) per axis. Default tx,ty 20 px, "
                           "rz 3 deg."),
@@ -83,9 +86,9 @@ def build_config(axes, half_width, step, search, shutter, solver, lambda_w, lamb
         raise click.BadParameter(f"unknown axes {unknown}; expected names from {ops.POSE_AXES}", param_hint="--axes")
     reg = ops.RegistrationParams(
         axes=axes,
-        half_width=_floats(half_width, "--half-width", len(axes)) if half_width else _axis_defaults(axes, _HALF_WIDTH),
-        step=_floats(step, "--step", len(axes)) if step else _axis_defaults(axes, _STEP),
-        search=_floats(search, "--search", len(axes)) if search else _axis_defaults(axes, _SEARCH),
+        half_width=_floats(half_width, "--half-width", len(axes), allow_auto=True),
+        step=_floats(step, "--step", len(axes), allow_auto=True),
+        search=_floats(search, "--search", len(axes)) if search else tuple(_SEARCH[a] for a in axes),
         shutter=shutter, solver=solver, lambda_w=lambda_w, lambda_chi=lambda_chi)
     changes = ops.ChangeParams(threshold=threshold, min_area=min_area)
     return DetectConfig(registration=reg, changes=changes, tile=tile, overlap=overlap, focal=focal)

@@ -1,0 +1,231 @@
+"""Tests of ops._changes: thresholds from histograms, change masks, and masks carried
+back to the reference grid, answers known by construction."""
+
+import numpy as np
+import pytest
+
+from ops import (
+    Camera,
+    ChangeParams,
+    ParameterError,
+    RSMBError,
+    change_mask,
+    change_threshold,
+    changes_to_reference,
+    score_histogram,
+)
+from ops._changes import _RESIDUAL_EDGES
+
+SHAPE = (48, 64)
+BIN_RATIO = float(_RESIDUAL_EDGES[-1] / _RESIDUAL_EDGES[-2])  # log bins: ~1.5 % wide
+
+
+@pytest.fixture
+def blobs():
+    """A mask with a few separated rectangles and a disc."""
+    mask = np.zeros(SHAPE, bool)
+    mask[5:12, 8:20] = True
+    mask[30:40, 40:46] = True
+    yy, xx = np.mgrid[:SHAPE[0], :SHAPE[1]]
+    mask |= (yy - 20) ** 2 + (xx - 50) ** 2 <= 16
+    return mask
+
+
+# ---------------------------------------------------------------- changes_to_reference
+
+
+def test_identity_trajectory_returns_the_same_mask(blobs):
+    camera = Camera.for_shape(SHAPE)
+    out = changes_to_reference(blobs, np.zeros((SHAPE[0], 3)), axes=("tx", "ty", "rz"), camera=camera,
+                               reference_shape=SHAPE)
+    assert out.dtype == np.uint8 and out.shape == SHAPE
+    np.testing.assert_array_equal(out.astype(bool), blobs)
+
+
+@pytest.mark.parametrize("tx, ty", [(3, 0), (-4, 2), (5, -3)])
+def test_constant_translation_shifts_the_mask_back(blobs, tx, ty):
+    """Reference pixel p lands at p + t in the capture: out[v, u] = mask[v + ty, u + tx]."""
+    camera = Camera.for_shape(SHAPE)
+    trajectory = np.broadcast_to([float(tx), float(ty)], (SHAPE[0], 2))
+    out = changes_to_reference(blobs, trajectory, axes=("tx", "ty"), camera=camera, reference_shape=SHAPE)
+    expected = np.zeros(SHAPE, bool)
+    src = blobs[max(ty, 0):SHAPE[0] + min(ty, 0), max(tx, 0):SHAPE[1] + min(tx, 0)]
+    expected[max(-ty, 0):max(-ty, 0) + src.shape[0], max(-tx, 0):max(-tx, 0) + src.shape[1]] = src
+    np.testing.assert_array_equal(out.astype(bool), expected)
+
+
+def test_rolling_shutter_trajectory_shifts_each_row_by_its_own_pose(blobs):
+    """tx growing by 0.37 px per row: reference row v is carried by row v's pose."""
+    camera = Camera.for_shape(SHAPE)
+    slope = 0.37  # never a half pixel on rows 0..47, so rounding is unambiguous
+    trajectory = np.zeros((SHAPE[0], 2))
+    trajectory[:, 0] = slope * np.arange(SHAPE[0])
+    out = changes_to_reference(blobs, trajectory, axes=("tx", "ty"), camera=camera, reference_shape=SHAPE)
+    expected = np.zeros(SHAPE, bool)
+    for v in range(SHAPE[0]):
+        cols = np.arange(SHAPE[1]) + int(np.rint(slope * v))
+        ok = cols < SHAPE[1]
+        expected[v, ok] = blobs[v, cols[ok]]
+    np.testing.assert_array_equal(out.astype(bool), expected)
+
+
+def test_windows_in_a_larger_image(blobs):
+    """A distorted window and a reference window at their origins in the whole image
+    give the whole-image answer cut to the reference window."""
+    whole_shape = (80, 100)
+    camera = Camera.for_shape(whole_shape)
+    d_origin, r_origin = (10, 20), (5, 12)
+    mask_whole = np.zeros(whole_shape, bool)
+    mask_whole[d_origin[0]:d_origin[0] + SHAPE[0], d_origin[1]:d_origin[1] + SHAPE[1]] = blobs
+    traj_whole = np.zeros((whole_shape[0], 3))
+    traj_whole[:, 0], traj_whole[:, 1], traj_whole[:, 2] = 2.0, -1.0, 0.8
+    whole = changes_to_reference(mask_whole, traj_whole, axes=("tx", "ty", "rz"), camera=camera,
+                                 reference_shape=whole_shape)
+    ref_shape = (50, 70)
+    window = changes_to_reference(blobs, traj_whole[d_origin[0]:d_origin[0] + SHAPE[0]], axes=("tx", "ty", "rz"),
+                                  camera=camera, reference_shape=ref_shape, reference_origin_yx=r_origin,
+                                  distorted_origin_yx=d_origin)
+    np.testing.assert_array_equal(window, whole[r_origin[0]:r_origin[0] + ref_shape[0],
+                                                r_origin[1]:r_origin[1] + ref_shape[1]])
+    assert window.any()
+
+
+# ---------------------------------------------------------------- change_threshold
+
+
+def _residual_case(seed, sigma):
+    rng = np.random.default_rng(seed)
+    residual = rng.normal(0.0, sigma, SHAPE)
+    score = np.maximum(np.abs(residual) - 0.01, 0.0)
+    valid = np.ones(SHAPE, bool)
+    valid[:, :4] = False
+    return residual, score, valid
+
+
+@pytest.mark.parametrize("seed, sigma, k", [(0, 0.01, 6.0), (1, 0.03, 4.0), (2, 0.002, 10.0)])
+def test_noise_threshold_is_k_robust_sigmas(seed, sigma, k):
+    residual, score, valid = _residual_case(seed, sigma)
+    hist = score_histogram(residual, score, valid)
+    t = change_threshold(hist, params=ChangeParams(k=k, floor=0.0))
+    median = float(np.median(np.abs(residual[valid])))
+    # the histogram gives the upper edge of the median's bin
+    ratio = t / (k * 1.4826 * median)
+    assert 1.0 <= ratio <= BIN_RATIO * (1 + 1e-9)
+    assert BIN_RATIO < 1.016
+
+
+def test_noise_threshold_of_summed_tiles_is_that_of_the_whole():
+    residual, score, valid = _residual_case(3, 0.02)
+    whole = score_histogram(residual, score, valid)
+    parts = [score_histogram(residual[:, s], score[:, s], valid[:, s]) for s in (slice(0, 25), slice(25, None))]
+    total = parts[0] + parts[1]
+    np.testing.assert_array_equal(total.residual, whole.residual)
+    np.testing.assert_array_equal(total.score, whole.score)
+    assert change_threshold(total) == change_threshold(whole)
+
+
+def test_noise_threshold_never_below_floor():
+    residual, score, valid = _residual_case(4, 0.001)
+    hist = score_histogram(residual, score, valid)
+    assert change_threshold(hist, params=ChangeParams(floor=0.05)) == 0.05
+    empty = score_histogram(residual, score, np.zeros(SHAPE, bool))
+    assert change_threshold(empty, params=ChangeParams(floor=0.07)) == 0.07
+
+
+@pytest.mark.parametrize("threshold", [0.2, 3, "0.15"])
+def test_numeric_threshold_returned(threshold):
+    residual, score, valid = _residual_case(5, 0.02)
+    hist = score_histogram(residual, score, valid)
+    assert change_threshold(hist, params=ChangeParams(threshold=threshold)) == pytest.approx(float(threshold))
+
+
+def test_kapur_threshold_separates_two_populations():
+    rng = np.random.default_rng(6)
+    score = np.where(rng.random(SHAPE) < 0.2, rng.uniform(0.5, 0.6, SHAPE), rng.uniform(0.01, 0.1, SHAPE))
+    hist = score_histogram(score, score, np.ones(SHAPE, bool))
+    t = change_threshold(hist, params=ChangeParams(threshold="kapur", floor=0.0))
+    assert 0.1 <= t <= 0.5
+    assert change_threshold(hist, params=ChangeParams(threshold="kapur", floor=0.8)) == 0.8
+
+
+# ---------------------------------------------------------------- change_mask
+
+
+def test_change_mask_keeps_a_blob_and_drops_small_components():
+    score = np.zeros(SHAPE, np.float32)
+    score[10:20, 10:22] = 0.5          # 120 px, kept
+    score[30:33, 40:43] = 0.5          # 9 px, below min_area
+    score[40, 5] = 0.9                 # one hot pixel
+    mask = change_mask(score, 0.2, params=ChangeParams(min_area=20))
+    expected = np.zeros(SHAPE, bool)
+    expected[10:20, 10:22] = True
+    np.testing.assert_array_equal(mask, expected)
+    # with a small enough min_area the small one stays
+    small = change_mask(score, 0.2, params=ChangeParams(min_area=5))
+    assert small[30:33, 40:43].all() and small.sum() == 129
+
+
+def test_change_mask_hysteresis_drops_large_weak_component():
+    """A large component whose peak stays below the threshold is not a change, even
+    though every pixel is above hysteresis * threshold."""
+    score = np.zeros(SHAPE, np.float32)
+    score[5:25, 5:25] = 0.15          # 400 px, peak 0.15 < 0.2
+    score[30:40, 40:55] = 0.3         # 150 px, above
+    params = ChangeParams(min_area=20, hysteresis=0.5)
+    mask = change_mask(score, 0.2, params=params)
+    assert not mask[5:25, 5:25].any()
+    assert mask[30:40, 40:55].all() and mask.sum() == 150
+
+
+def test_change_mask_hysteresis_keeps_weak_border_of_a_strong_blob():
+    score = np.zeros(SHAPE, np.float32)
+    score[10:30, 10:30] = 0.15        # weak halo (blurred border)
+    score[15:25, 15:25] = 0.3         # strong core
+    mask = change_mask(score, 0.2, params=ChangeParams(min_area=20, hysteresis=0.5, half_max_window=1))
+    np.testing.assert_array_equal(mask, score > 0)
+    # hysteresis disabled: only the core
+    core = change_mask(score, 0.2, params=ChangeParams(min_area=20, hysteresis=1.0, half_max_window=1))
+    np.testing.assert_array_equal(core, score > 0.2)
+
+
+def test_change_mask_fills_small_holes():
+    score = np.zeros(SHAPE, np.float32)
+    score[10:30, 10:30] = 0.5
+    score[18:20, 18:20] = 0.0  # a 4 px hole
+    mask = change_mask(score, 0.2, params=ChangeParams(min_area=20))
+    assert mask[10:30, 10:30].all() and mask.sum() == 400
+
+
+def test_change_mask_nan_score_is_no_change():
+    score = np.full(SHAPE, np.nan, np.float32)
+    score[10:20, 10:20] = 0.5
+    mask = change_mask(score, 0.2)
+    assert mask.sum() == 100
+
+
+# ---------------------------------------------------------------- ChangeParams
+
+
+@pytest.mark.parametrize("kwargs, name", [
+    (dict(threshold="otsu"), "threshold"),
+    (dict(threshold=True), "threshold"),
+    (dict(threshold=None), "threshold"),
+    (dict(threshold=0.0), "threshold"),
+    (dict(threshold=-0.1), "threshold"),
+    (dict(threshold="-1"), "threshold"),
+    (dict(hysteresis=0.0), "hysteresis"),
+    (dict(hysteresis=1.5), "hysteresis"),
+    (dict(min_area=-1), "min_area"),
+])
+def test_change_params_validation(kwargs, name):
+    with pytest.raises(ParameterError, match=name) as info:
+        ChangeParams(**kwargs)
+    assert isinstance(info.value, ValueError) and isinstance(info.value, RSMBError)
+
+
+def test_change_params_normalises_numbers():
+    assert ChangeParams(threshold="0.25").threshold == 0.25
+    assert ChangeParams(threshold=1).threshold == 1.0
+    assert isinstance(ChangeParams(threshold=1).threshold, float)
+    assert ChangeParams().threshold == "noise"
+    assert ChangeParams(threshold="kapur").threshold == "kapur"
