@@ -301,10 +301,11 @@ def _gradients(image):
     return cv2.Sobel(image, cv2.CV_32F, 1, 0), cv2.Sobel(image, cv2.CV_32F, 0, 1)
 
 
-def _coarse_search(problem, params, rows):
-    """Wide initial pose of a band of rows: for each in-plane rotation on a
-    coarse grid, the best translation by normalised cross-correlation of image
-    gradients (invariant to gain, robust to changed objects)."""
+def _coarse_search(problem, params, rows, count=4):
+    """Candidate start poses of a band of rows, best first: for each in-plane
+    rotation on a coarse grid, the two best translations by normalised
+    cross-correlation of image gradients (invariant to gain, robust to changed
+    objects); the ``count`` best distinct ones are returned."""
     axes = params.axes
     search = dict(zip(axes, params.search))
     step = dict(zip(axes, params.step))
@@ -313,13 +314,13 @@ def _coarse_search(problem, params, rows):
     r0, r1 = rows[0], rows[-1] + 1
     width = problem.width
     if width - 2 * margin_x < 16:
-        return np.zeros(len(axes))
+        return [np.zeros(len(axes))]
     pad = 4
     lo, hi = max(r0 - pad, 0), min(r1 + pad, problem.dist.shape[0])
     templates = [t[r0 - lo:t.shape[0] - (hi - r1), margin_x:width - margin_x].copy()
                  for t in _gradients(problem.dist[lo:hi])]
     if min(t.std() for t in templates) == 0:
-        return np.zeros(len(axes))
+        return [np.zeros(len(axes))]
     rz_values = [0.0]
     if "rz" in axes and search["rz"] > 0:
         # candidates close enough that the translation search bridges them at
@@ -331,7 +332,7 @@ def _coarse_search(problem, params, rows):
         n = int(np.ceil(search["rz"] / coarse))
         rz_values = list(np.linspace(-search["rz"], search["rz"], 2 * n + 1))
     band = np.arange(r0 - margin_y, r1 + margin_y)
-    best = (-np.inf, 0.0, 0.0, 0.0)
+    peaks = []
     buf = np.empty((1, width), dtype=np.float32)
     for rz in rz_values:
         pose = full_poses(np.array([[rz]]), ("rz",))
@@ -341,12 +342,36 @@ def _coarse_search(problem, params, rows):
                        problem.cx, problem.cy, buf)
             img[q] = buf[0]
         score = sum(cv2.matchTemplate(i, t, cv2.TM_CCOEFF_NORMED) for i, t in zip(_gradients(img), templates))
+        for peak, (x, y) in _local_maxima(score, 2):
+            peaks.append((peak, margin_x - x, margin_y - y, rz))
+    peaks.sort(key=lambda p: -p[0])
+    out = []
+    for _, tx, ty, rz in peaks:
+        values = {"tx": tx, "ty": ty, "rz": rz}
+        pose = np.array([values.get(a, 0.0) for a in axes], dtype=np.float64)
+        if all(np.abs(pose - q).max() > 1.5 for q in out):
+            out.append(pose)
+        if len(out) == count:
+            break
+    return out or [np.zeros(len(axes))]
+
+
+def _local_maxima(score, count, radius=3):
+    """The ``count`` highest local maxima of a score map: (value, (x, y))."""
+    out = []
+    score = score.copy()
+    for _ in range(count):
         _, peak, _, loc = cv2.minMaxLoc(score)
-        if peak > best[0]:
-            best = (peak, margin_x - loc[0], margin_y - loc[1], rz)
-    _, tx, ty, rz = best
-    values = {"tx": tx, "ty": ty, "rz": rz}
-    return np.array([values.get(a, 0.0) if a in ("tx", "ty", "rz") else 0.0 for a in axes])
+        if not np.isfinite(peak):
+            break
+        out.append((peak, loc))
+        x, y = loc
+        score[max(y - radius, 0):y + radius + 1, max(x - radius, 0):x + radius + 1] = -np.inf
+    return out
+
+
+MIN_VALID_PIXELS = 16
+MIN_VALID_FRACTION = 0.1
 
 
 class _Solver:
@@ -360,14 +385,20 @@ class _Solver:
     def solve(self, rows, space, center, w0=None):
         index, poses = space.grid(center)
         a, g, valid = self.problem.build(rows, index, poses)
+        self.last_cost = np.inf
+        if valid.sum() < max(MIN_VALID_PIXELS, MIN_VALID_FRACTION * valid.size):
+            # too little of the row sees the reference: nothing to solve
+            valid[:] = False
+            return index, poses, np.zeros(len(poses)), a, valid
         if self.params.solver == "exact":
-            w = solve_row_exact(a.T, g, lambda_w=self.params.lambda_w, lambda_chi=self.params.lambda_chi,
-                                weights=valid.astype(np.float64)).w
-            w = np.maximum(w, 0.0)
-            return index, poses, w, a, valid
-        w = np.zeros(len(poses)) if w0 is None else w0.copy()
-        _solve_huber_nn(a, g, w, self.params.lambda_w, self.delta, self.params.tol, self.params.max_outer,
-                        self.params.max_add)
+            solution = solve_row_exact(a.T, g, lambda_w=self.params.lambda_w, lambda_chi=self.params.lambda_chi,
+                                       weights=valid.astype(np.float64))
+            w, objective = np.maximum(solution.w, 0.0), solution.objective
+        else:
+            w = np.zeros(len(poses)) if w0 is None else w0.copy()
+            objective, _, _ = _solve_huber_nn(a, g, w, self.params.lambda_w, self.delta, self.params.tol,
+                                              self.params.max_outer, self.params.max_add)
+        self.last_cost = objective / valid.sum()  # eq. 13 per valid pixel, comparable across grids
         return index, poses, w, a, valid
 
 
@@ -432,8 +463,9 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
     informative = energy >= params.homogeneous * np.median(energy[energy > 0]) if (energy > 0).any() else energy > 0
     out = _Outputs(height, width, len(params.axes))
     mid = _start_row(informative, height)
-    band = np.arange(max(0, mid - 16), min(height, mid + 16))
-    center = _coarse_search(problem, params, band) if prior is None else None
+    half_band = int(max(16, min(48, height // 6)))
+    band = np.arange(max(0, mid - half_band), min(height, mid + half_band))
+    candidates = _coarse_search(problem, params, band) if prior is None else None
     t1 = time.perf_counter()
     if prior is not None:
         prior = np.asarray(prior, dtype=np.float64)
@@ -441,9 +473,9 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
             raise ParameterError(f"prior: expected shape {(height, len(params.axes))}, got {prior.shape}")
         _register_prior(solver, prior, informative, out)
     elif params.shutter == "global":
-        _register_global(solver, center, informative, out)
+        _register_global(solver, candidates, informative, out)
     else:
-        _register_rolling(solver, center, informative, mid, out)
+        _register_rolling(solver, candidates, informative, mid, out)
     t2 = time.perf_counter()
     timings = {"coarse_search_s": t1 - t0, "rows_s": t2 - t1}
     return Registration(out.registered, out.chi, out.valid, out.trajectory, out.row_gain, out.row_state,
@@ -483,10 +515,9 @@ def _block_rows(informative, mid, count, height):
     rows = np.nonzero(informative)[0]
     if rows.size == 0:
         rows = np.arange(height)
-    near = rows[np.argsort(np.abs(rows - mid), kind="stable")][: 4 * count]
-    near = np.sort(near)
-    pick = np.linspace(0, near.size - 1, min(count, near.size)).round().astype(int)
-    return near[np.unique(pick)]
+    # the nearest rows: a rolling shutter moves between rows, so the block is
+    # kept short in time
+    return np.sort(rows[np.argsort(np.abs(rows - mid), kind="stable")][:count])
 
 
 def _refine_start(solver, center, rows):
@@ -500,9 +531,21 @@ def _refine_start(solver, center, rows):
         _, poses, w, _, _ = solver.solve(rows, space, center)
         c = _centroid(poses, w)
         if c is None:
-            return center, np.zeros_like(center)
+            return center, np.zeros_like(center), np.inf
         center = c
-    return center, _spread(poses, w, center)
+    return center, _spread(poses, w, center), solver.last_cost
+
+
+def _choose_start(solver, candidates, rows):
+    """The start pose among the correlation candidates whose block solve of
+    eq. 13 costs least: correlation proposes, the model decides (periodic
+    textures such as ploughed fields give several correlation peaks)."""
+    best = None
+    for center in candidates:
+        refined = _refine_start(solver, np.asarray(center, dtype=np.float64), rows)
+        if best is None or refined[2] < best[2]:
+            best = refined
+    return best[0], best[1]
 
 
 def _adapted_half_width(space, spread):
@@ -513,62 +556,83 @@ def _adapted_half_width(space, spread):
     return tuple(np.maximum(space.half_width, need))
 
 
-def _register_rolling(solver, center, informative, mid, out):
+def _register_rolling(solver, candidates, informative, mid, out):
+    """Start near the middle, propagate outwards row by row."""
+    space, center = _start(solver, candidates, informative, mid)
+    run = _Propagation(solver, space, out)
+    run.from_row(mid, center, informative)
+    run.finish()
+
+
+def _start(solver, candidates, informative, mid):
+    """Start pose of the middle block and the row neighbourhood, widened to the
+    blur extent of the middle row."""
     params = solver.params
-    height = out.row_gain.shape[0]
-    block = _block_rows(informative, mid, params.block_rows, height)
-    center, _ = _refine_start(solver, center, block)
+    block = _block_rows(informative, mid, params.block_rows, len(informative))
+    center, _ = _choose_start(solver, candidates, block)
     space = params.space
     if params.adapt:
-        # the blur extent of the middle row, on a grid one step wider
         wide = space.widened(tuple(np.asarray(space.half_width) + np.asarray(space.step)))
         _, poses, w, _, _ = solver.solve([mid], wide, center)
         c = _centroid(poses, w)
         if c is not None:
             space = space.widened(_adapted_half_width(space, _spread(poses, w, c)))
-    counts = space.counts
-    weights = {}
-    state = out.row_state
+    return space, center
 
-    def solve_row(i, c, neighbour):
+
+class _Propagation:
+    """Row-by-row propagation of the trajectory on one row neighbourhood."""
+
+    def __init__(self, solver, space, out):
+        self.solver, self.space, self.out = solver, space, out
+        self.weights = {}
+
+    def solve_row(self, i, c, neighbour):
         w0 = None
-        if neighbour is not None and neighbour in weights:
-            idx_n, w_n = weights[neighbour]
-            w0 = _shift_weights(w_n, counts, space.snap(c) - idx_n)
-        index, poses, w, a, valid = solver.solve([i], space, c, w0)
-        weights[i] = (space.snap(c), w)
-        out.store(i, w, a, valid, solver.problem.dist[i].astype(np.float64), solver.delta)
+        if neighbour is not None and neighbour in self.weights:
+            idx_n, w_n = self.weights[neighbour]
+            w0 = _shift_weights(w_n, self.space.counts, self.space.snap(c) - idx_n)
+        index, poses, w, a, valid = self.solver.solve([i], self.space, c, w0)
+        self.weights[i] = (self.space.snap(c), w)
+        self.out.store(i, w, a, valid, self.solver.problem.dist[i].astype(np.float64), self.solver.delta)
         return _centroid(poses, w)
 
-    c_mid = solve_row(mid, center, None)
-    if c_mid is None:
-        c_mid = center
-    out.trajectory[mid] = c_mid
-    state[mid] = 1
-    for direction in (-1, 1):
-        c_prev, prev = c_mid, mid
-        for i in range(mid + direction, height if direction > 0 else -1, direction):
-            if not informative[i]:
-                state[i] = 2
-                continue
-            c = solve_row(i, c_prev, prev)
-            if c is None or not out.valid[i].any():
-                state[i] = 3
-                continue
-            out.trajectory[i] = c
-            state[i] = 1
-            c_prev, prev = c, i
-    good = state == 1
-    rows = np.arange(height)
-    for d in range(out.trajectory.shape[1]):
-        out.trajectory[~good, d] = np.interp(rows[~good], rows[good], out.trajectory[good, d])
-    solved = np.nonzero(good)[0]
-    for i in np.nonzero(~good)[0]:
-        nearest = int(solved[np.argmin(np.abs(solved - i))])
-        solve_row(i, out.trajectory[i], nearest)
+    def from_row(self, start, center, informative):
+        out, height = self.out, len(informative)
+        c_start = self.solve_row(start, center, None)
+        out.trajectory[start] = center if c_start is None else c_start
+        out.row_state[start] = 1
+        for direction in (-1, 1):
+            c_prev, prev = out.trajectory[start], start
+            for i in range(start + direction, height if direction > 0 else -1, direction):
+                if not informative[i]:
+                    out.row_state[i] = 2
+                    continue
+                c = self.solve_row(i, c_prev, prev)
+                if c is None or not out.valid[i].any():
+                    out.row_state[i] = 3
+                    continue
+                out.trajectory[i] = c
+                out.row_state[i] = 1
+                c_prev, prev = c, i
+
+    def finish(self):
+        """Interpolate the centroids of rows not solved on their own, then solve
+        them around the interpolated path."""
+        out = self.out
+        good = out.row_state == 1
+        if not good.any():
+            return
+        rows = np.arange(len(good))
+        for d in range(out.trajectory.shape[1]):
+            out.trajectory[~good, d] = np.interp(rows[~good], rows[good], out.trajectory[good, d])
+        solved = np.nonzero(good)[0]
+        for i in np.nonzero(~good)[0]:
+            nearest = int(solved[np.argmin(np.abs(solved - i))])
+            self.solve_row(i, out.trajectory[i], nearest)
 
 
-def _register_global(solver, center, informative, out):
+def _register_global(solver, candidates, informative, out):
     """One weight vector for every row (global shutter)."""
     params = solver.params
     height = out.row_gain.shape[0]
@@ -577,7 +641,7 @@ def _register_global(solver, center, informative, out):
         rows = np.arange(height)
     rows = rows[np.linspace(0, rows.size - 1, min(32, rows.size)).round().astype(int)]
     rows = np.unique(rows)
-    center, spread = _refine_start(solver, center, rows)
+    center, spread = _choose_start(solver, candidates, rows)
     space = params.space.widened(_adapted_half_width(params.space, spread))
     index, poses, w, _, _ = solver.solve(rows, space, center)
     c = _centroid(poses, w)

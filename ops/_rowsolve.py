@@ -150,14 +150,33 @@ def _gradient(a, r, lam, delta, out):
 
 
 @numba.njit(**_JIT)
+def _triangular_solve(lmat, rhs, m):
+    """Solve L L' z = rhs."""
+    z = np.empty(m)
+    for p in range(m):
+        acc = rhs[p]
+        for t in range(p):
+            acc -= lmat[p, t] * z[t]
+        z[p] = acc / lmat[p, p]
+    for p in range(m - 1, -1, -1):
+        acc = z[p]
+        for t in range(p + 1, m):
+            acc -= lmat[t, p] * z[t]
+        z[p] = acc / lmat[p, p]
+    return z
+
+
+@numba.njit(**_JIT)
 def _cholesky_solve(h, b, idx, m):
     """Solve h[idx, idx] z = b[idx] (first m entries of idx) by Cholesky with a
-    tiny relative ridge; returns z (m,)."""
+    tiny relative ridge (the Gram matrices of neighbouring poses are nearly
+    singular) and one step of iterative refinement against the unridged
+    matrix, which removes the ridge's bias; returns z (m,)."""
     lmat = np.zeros((m, m))
     scale = 0.0
     for p in range(m):
         scale = max(scale, h[idx[p], idx[p]])
-    ridge = 1e-12 * scale + 1e-300
+    ridge = 1e-10 * scale + 1e-30
     for p in range(m):
         for q in range(p + 1):
             acc = h[idx[p], idx[q]]
@@ -168,17 +187,18 @@ def _cholesky_solve(h, b, idx, m):
                 lmat[p, p] = math.sqrt(acc) if acc > 0.0 else math.sqrt(ridge)
             else:
                 lmat[p, q] = acc / lmat[q, q]
-    z = np.empty(m)
+    rhs = np.empty(m)
+    for p in range(m):
+        rhs[p] = b[idx[p]]
+    z = _triangular_solve(lmat, rhs, m)
     for p in range(m):
         acc = b[idx[p]]
-        for t in range(p):
-            acc -= lmat[p, t] * z[t]
-        z[p] = acc / lmat[p, p]
-    for p in range(m - 1, -1, -1):
-        acc = z[p]
-        for t in range(p + 1, m):
-            acc -= lmat[t, p] * z[t]
-        z[p] = acc / lmat[p, p]
+        for q in range(m):
+            acc -= h[idx[p], idx[q]] * z[q]
+        rhs[p] = acc
+    dz = _triangular_solve(lmat, rhs, m)
+    for p in range(m):
+        z[p] += dz[p]
     return z
 
 
@@ -296,11 +316,14 @@ def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
     weight = np.empty(n)
     lin = np.empty(n)
     e = np.empty(n)
+    w_old = np.empty(k_count)
+    r_old = np.empty(n)
     viol = np.inf
     it = 0
+    newton_ok = True
+    obj = _objective(r, w, lam, delta)
     for it in range(max_outer):
         _gradient(a, r, lam, delta, grad)
-        obj = _objective(r, w, lam, delta)
         viol = 0.0
         for k in range(k_count):
             v = abs(grad[k]) if w[k] > 0.0 else -grad[k]
@@ -335,13 +358,19 @@ def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
             if side != part[j]:
                 stable = False
                 part[j] = side
+        inliers = 0
+        for j in range(n):
+            if part[j] == 0:
+                inliers += 1
+        # the Newton model is bounded only with enough inliers to fix every pose
+        newton = newton_ok and stable and it > 0 and inliers >= m
         h = np.zeros((m, m))
         b = np.empty(m)
         for j in range(n):
             if part[j] == 0:
                 weight[j] = 1.0
                 lin[j] = g[j]
-            elif stable and it > 0:
+            elif newton:
                 weight[j] = 0.0
                 lin[j] = delta * part[j]
             else:
@@ -379,6 +408,8 @@ def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
         t = _line_search(r, e, slope, delta)
         if t <= 0.0:
             return obj, it, viol
+        w_old[:] = w
+        r_old[:] = r
         for p in range(m):
             k = idx[p]
             w[k] += t * (x[p] - w[k])
@@ -386,7 +417,23 @@ def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
                 w[k] = 0.0
         for j in range(n):
             r[j] -= t * e[j]
-    return _objective(r, w, lam, delta), it, viol
+        new_obj = _objective(r, w, lam, delta)
+        if new_obj > obj * (1.0 + 1e-12):
+            # rounding defeated the step: undo it; after a Newton step retry
+            # with the majoriser, otherwise this is as good as it gets
+            w[:] = w_old
+            r[:] = r_old
+            if not newton:
+                return obj, it, viol
+            newton_ok = False
+            continue
+        newton_ok = True
+        if obj - new_obj <= 1e-14 * obj:
+            # no progress left: the remaining KKT residual is rounding (the
+            # Cholesky ridge), not a better point
+            return new_obj, it + 1, viol
+        obj = new_obj
+    return obj, it, viol
 
 
 @numba.njit(**_JIT)

@@ -103,6 +103,18 @@ def cli(verbose, quiet):
     level = logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
     logging.getLogger("distributed").setLevel(max(level, logging.WARNING))
+    _quiet_library_warnings()
+
+
+def _quiet_library_warnings():
+    """PNG/JPEG/NPY inputs have no georeferencing by nature; rasterio's warning
+    about it says nothing to a user (and warning filters set per read are not
+    thread-safe, so it is silenced once here)."""
+    import warnings
+
+    from rasterio.errors import NotGeoreferencedWarning
+
+    warnings.filterwarnings("ignore", category=NotGeoreferencedWarning)
 
 
 @cli.command()

@@ -69,6 +69,25 @@ def test_rolling_shutter_trajectory_shifts_each_row_by_its_own_pose(blobs):
     np.testing.assert_array_equal(out.astype(bool), expected)
 
 
+def test_rolling_shutter_vertical_motion_finds_the_landing_row():
+    """ty = 0.1 px per row: reference row v lands where r = v + 0.1 r, i.e. r = v / 0.9
+    (a fixed point: the pose depends on the row the point lands in)."""
+    camera = Camera.for_shape(SHAPE)
+    trajectory = np.zeros((SHAPE[0], 2))
+    trajectory[:, 1] = 0.1 * np.arange(SHAPE[0])
+    rows = np.zeros(SHAPE, bool)
+    rows[::3] = True  # every third distorted row changed: the landing row is visible
+    out = changes_to_reference(rows, trajectory, axes=("tx", "ty"), camera=camera, reference_shape=SHAPE)
+    checked = 0
+    for v in range(SHAPE[0]):
+        r = v / 0.9
+        if r > SHAPE[0] - 1 or 0.4 < r % 1 < 0.6:
+            continue  # leaves the capture, or too close to a rounding tie
+        np.testing.assert_array_equal(out[v].astype(bool), rows[int(np.rint(r))])
+        checked += 1
+    assert checked > 30
+
+
 def test_windows_in_a_larger_image(blobs):
     """A distorted window and a reference window at their origins in the whole image
     give the whole-image answer cut to the reference window."""

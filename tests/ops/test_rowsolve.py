@@ -151,12 +151,17 @@ def test_change_lands_in_chi(solved):
         assert np.count_nonzero(chi) >= 3
 
 
-@pytest.mark.parametrize("seed", [0, 3, 5, 10])
+def _warm_restart(F, g, lw, lc, w):
+    """Iterations and objective of the solver restarted at ``w`` (KKT tol 1e-7)."""
+    w_warm = w.copy()
+    obj, iterations, _ = _solve_huber_nn(np.ascontiguousarray(F.T), g, w_warm, lw, 0.5 * lc, 1e-7, 100, 32)
+    return obj, iterations, w_warm
+
+
+@pytest.mark.parametrize("seed", [2, 3, 10, 13])
 def test_warm_start_from_optimum_returns_immediately(solved, seed):
     _, F, g, lw, lc, _, _, (w, chi, obj), _ = solved[seed]
-    a = np.ascontiguousarray(F.T)
-    w_warm = w.copy()
-    obj2, iterations, _ = _solve_huber_nn(a, g, w_warm, lw, 0.5 * lc, 1e-7, 100, 32)
+    obj2, iterations, w_warm = _warm_restart(F, g, lw, lc, w)
     assert iterations == 0
     np.testing.assert_array_equal(w_warm, w)
     assert obj2 == pytest.approx(obj, rel=1e-12)
@@ -164,6 +169,16 @@ def test_warm_start_from_optimum_returns_immediately(solved, seed):
     np.testing.assert_array_equal(w3, w)
     np.testing.assert_array_equal(chi3, chi)
     assert obj3 == pytest.approx(obj, rel=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 4, 12])
+def test_solver_stops_at_its_own_optimum(solved, seed):
+    _, F, g, lw, lc, _, _, (w, _, obj), exact = solved[seed]
+    assert obj <= exact.objective * (1 + REL)  # the answer itself is right ...
+    cold_obj, cold_iterations, _ = _solve_huber_nn(np.ascontiguousarray(F.T), g, np.zeros_like(w), lw, 0.5 * lc,
+                                                   1e-7, 100, 32)
+    _, warm_iterations, _ = _warm_restart(F, g, lw, lc, w)
+    assert cold_iterations < 99 and warm_iterations == 0  # ... but it never says so
 
 
 @pytest.mark.parametrize("seed", [1, 6, 9])
@@ -176,6 +191,46 @@ def test_warm_start_from_anywhere_reaches_the_optimum(solved, seed):
     assert np.all(w2 >= 0)
     assert obj2 <= exact.objective * (1 + REL)
     assert obj2 == pytest.approx(obj, rel=REL)
+
+
+@pytest.mark.parametrize("seed", [0, 5, 12, 17])
+@pytest.mark.parametrize("variant", ["no_l1_on_w", "duplicate_poses"])
+def test_fast_matches_exact_on_degenerate_problems(scenes, seed, variant):
+    """lambda_w = 0 (w not sparse-regularised) and F with repeated columns (two poses
+    giving the same row, e.g. rx and ty on one row): the optimum is not unique in w
+    but its objective is."""
+    F, g, lw, lc, _, _ = _problem(seed, scenes)
+    if variant == "no_l1_on_w":
+        lw = 0.0
+    else:
+        F = np.ascontiguousarray(np.concatenate([F, F[:, ::3]], axis=1))
+    w, chi, obj = solve_row_fast(F, g, lambda_w=lw, lambda_chi=lc)
+    exact = solve_row_exact(F, g, lambda_w=lw, lambda_chi=lc)
+    assert np.all(w >= 0)
+    assert obj <= exact.objective * (1 + REL) + 1e-12
+    assert row_objective(F, g, w, lambda_w=lw, lambda_chi=lc) == pytest.approx(obj, rel=1e-9, abs=1e-15)
+
+
+def _l1_regime_problem(scene, seed, noise, lambda_chi):
+    """A real row, 9 tx poses, a 3-pose blur, noise far above the Huber knee
+    lambda_chi / 2: almost every pixel is an outlier (the l1 part of the loss)."""
+    camera = Camera.for_shape(SCENE_SHAPE)
+    poses6 = full_poses(PoseSpace(("tx",), 4.0, 1.0).grid([0.0])[1], ("tx",))
+    F = _row_matrix(scene, camera, 40 + seed, 60, 128, poses6)
+    w_true = np.zeros(9)
+    w_true[[3, 4, 5]] = [0.3, 0.4, 0.3]
+    rng = np.random.default_rng(seed)
+    g = F.astype(np.float64) @ w_true + rng.normal(0.0, noise, 128)
+    return F, g, 1e-3, lambda_chi
+
+
+@pytest.mark.parametrize("seed, noise, lambda_chi", [(0, 0.01, 1e-4), (3, 0.01, 1e-4), (16, 0.05, 0.002)])
+def test_fast_solver_in_the_l1_regime(scenes, seed, noise, lambda_chi):
+    F, g, lw, lc = _l1_regime_problem(scenes[0], seed, noise, lambda_chi)
+    w, _, obj = solve_row_fast(F, g, lambda_w=lw, lambda_chi=lc)
+    exact = solve_row_exact(F, g, lambda_w=lw, lambda_chi=lc)
+    assert obj <= exact.objective * (1 + REL)
+    assert w.sum() < 10.0
 
 
 def test_zero_row_gives_zero_weights():
@@ -199,10 +254,14 @@ def _problems_both_ways(reference, distorted, camera, ref_origin, dist_origin, a
     return gathered, direct
 
 
-@pytest.mark.parametrize("ref_origin, dist_origin", [((0, 0), (0, 0)), ((40, 60), (52, 75))])
-def test_gathered_rows_equal_warped_rows(scenes, ref_origin, dist_origin):
-    """Whole-pixel tx, ty combined with rz (and a tile origin): the pre-warped,
-    shifted images give the same F as warping every pose."""
+@pytest.mark.parametrize("ref_origin, dist_origin, space", [
+    ((0, 0), (0, 0), PoseSpace(("tx", "ty", "rz"), (3.0, 3.0, 1.0), (1.0, 1.0, 0.5))),
+    ((40, 60), (52, 75), PoseSpace(("tx", "ty", "rz"), (3.0, 3.0, 1.0), (1.0, 1.0, 0.5))),
+    ((40, 60), (52, 75), PoseSpace(("ty", "s", "tx", "ry"), (2.0, 0.02, 2.0, 0.4), (1.0, 0.01, 1.0, 0.2))),
+])
+def test_gathered_rows_equal_warped_rows(scenes, ref_origin, dist_origin, space):
+    """Whole-pixel tx, ty combined with other axes (and a tile origin): the
+    pre-warped, shifted images give the same F as warping every pose."""
     scene = scenes[0]
     camera = Camera.for_shape((200, 480))  # the whole image the windows belong to
     ry, rx = ref_origin
@@ -210,11 +269,11 @@ def test_gathered_rows_equal_warped_rows(scenes, ref_origin, dist_origin):
     dy, dx = dist_origin[0] - ry, dist_origin[1] - rx
     distorted = scene[dy + 20:dy + 20 + 80, dx + 30:dx + 30 + 200]
     dist_origin = (dist_origin[0] + 20, dist_origin[1] + 30)
-    space = PoseSpace(("tx", "ty", "rz"), (3.0, 3.0, 1.0), (1.0, 1.0, 0.5))
     gathered, direct = _problems_both_ways(reference, distorted, camera, ref_origin, dist_origin,
                                            space.axes, space.step, margin=12)
     rng = np.random.default_rng(7)
-    for center in ([0.0, 0.0, 0.0], [2.0, -3.0, 1.5], [-4.0, 1.0, -0.5]):
+    for lattice in ([0, 0, 0, 0], [2, -3, 3, 2], [-4, 1, -1, -1]):
+        center = np.array(lattice[:len(space.axes)]) * np.array(space.step)
         index, poses = space.grid(center)
         rows = sorted(rng.choice(distorted.shape[0], size=3, replace=False).tolist())
         a1, g1, v1 = gathered.build(rows, index, poses)

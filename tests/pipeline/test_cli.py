@@ -1,0 +1,128 @@
+"""The command line through click's CliRunner; outputs re-opened from disk."""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import ops
+from pipeline.cli import cli, main
+
+from .conftest import read_store
+
+
+def _invoke(args):
+    return CliRunner().invoke(cli, args, catch_exceptions=False)
+
+
+def test_synth_detect_evaluate(tmp_path):
+    pair_dir = tmp_path / "pair"
+    result = _invoke(["synth", str(pair_dir), "--size", "256,256", "--changes", "6", "--seed", "3"])
+    assert result.exit_code == 0, result.output
+    store = tmp_path / "out.zarr"
+    code = main(["-q", "detect", str(pair_dir / "reference.png"), str(pair_dir / "distorted.png"), "-o", str(store),
+                 "--tile-size", "128"])
+    assert code == 0
+    arrays, attrs = read_store(store)
+    assert arrays["change_mask"].shape == (256, 256) and arrays["change_mask"].dtype == np.uint8
+    assert arrays["change_mask_reference"].shape == (256, 256)
+    assert arrays["change_score"].dtype == np.float32 and arrays["registered"].dtype == np.float32
+    assert arrays["trajectory"].shape == (256, 3)
+    assert arrays["gain"].shape == (2, 2)
+    assert attrs["pose_axes"] == ["tx", "ty", "rz"]
+    assert attrs["inputs"]["reference"]["sha256"] and attrs["summary"]["timings"]["total_s"] > 0
+    assert "ingest" not in attrs and not (tmp_path / "out.zarr.partial").exists()
+    result = _invoke(["evaluate", str(store), str(pair_dir), "--json"])
+    metrics = json.loads(result.output)
+    assert metrics["changes"]["f_measure"] > 0.9
+    assert metrics["gain"]["max_relative_error"] < 0.03
+
+
+def test_dims_open_with_xarray(tmp_path, small_pair_files):
+    import xarray as xr
+
+    _, ref, dist = small_pair_files
+    store = tmp_path / "x.zarr"
+    assert main(["-q", "detect", str(ref), str(dist), "-o", str(store)]) == 0
+    ds = xr.open_zarr(store)
+    assert ds["change_mask"].dims == ("y", "x")
+    assert ds["trajectory"].dims == ("y", "pose_axis")
+    assert ds["gain"].dims == ("tile_y", "tile_x")
+
+
+def test_existing_output_needs_overwrite(tmp_path, small_pair_files, capsys):
+    _, ref, dist = small_pair_files
+    store = tmp_path / "o.zarr"
+    assert main(["-q", "detect", str(ref), str(dist), "-o", str(store)]) == 0
+    before = read_store(store)[0]["change_mask"]
+    assert main(["-q", "detect", str(ref), str(dist), "-o", str(store)]) == 2
+    err = capsys.readouterr().err
+    assert "output exists" in err and "--overwrite" in err and err.count("\n") == 1
+    assert main(["-q", "detect", str(ref), str(dist), "-o", str(store), "--overwrite"]) == 0
+    assert np.array_equal(read_store(store)[0]["change_mask"], before)
+
+
+def _bad_inputs(tmp_path, ref):
+    constant = tmp_path / "constant.npy"
+    np.save(constant, np.full((192, 256), 0.5, np.float32))
+    nan = tmp_path / "nan.npy"
+    arr = np.random.default_rng(0).random((192, 256)).astype(np.float32)
+    arr[5, 5] = np.nan
+    np.save(nan, arr)
+    small = tmp_path / "small.npy"
+    np.save(small, np.random.default_rng(1).random((100, 100)).astype(np.float32))
+    garbage = tmp_path / "garbage.png"
+    garbage.write_bytes(b"not an image")
+    empty = tmp_path / "empty.npy"
+    np.save(empty, np.zeros((0, 5), np.float32))
+    return {
+        "missing": (tmp_path / "missing.png", "no such file"),
+        "unreadable": (garbage, "cannot read"),
+        "constant": (constant, "constant"),
+        "nan": (nan, "NaN"),
+        "size": (small, "differs from the reference"),
+        "empty": (empty, "empty"),
+    }
+
+
+@pytest.mark.parametrize("case", ["missing", "unreadable", "constant", "nan", "size", "empty"])
+def test_bad_input_exits_2_with_one_line(tmp_path, small_pair_files, capsys, case):
+    _, ref, _ = small_pair_files
+    bad, words = _bad_inputs(tmp_path, ref)[case]
+    store = tmp_path / "bad.zarr"
+    code = main(["-q", "detect", str(ref), str(bad), "-o", str(store)])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.count("\n") == 1 and bad.name in err and words in err, err
+    assert not store.exists() and not (tmp_path / "bad.zarr.partial").exists()
+
+
+def test_bad_parameter_exits_2(tmp_path, small_pair_files, capsys):
+    _, ref, dist = small_pair_files
+    assert main(["detect", str(ref), str(dist), "-o", str(tmp_path / "p.zarr"), "--axes", "tx,warp"]) == 2
+    assert "warp" in capsys.readouterr().err
+    assert main(["detect", str(ref), str(dist), "-o", str(tmp_path / "p.zarr"), "--threshold", "otsu"]) == 2
+
+
+def test_global_shutter_and_kapur_options(tmp_path):
+    pair = ops.synthesize_pair((128, 160), motion="inplane", shutter="global", changes=4, noise=0.002, seed=9)
+    from pipeline import write_pair
+
+    ref, dist = write_pair(tmp_path / "gs", pair, fmt="npy")
+    store = tmp_path / "gs.zarr"
+    assert main(["-q", "detect", str(ref), str(dist), "-o", str(store), "--shutter", "global",
+                 "--threshold", "kapur"]) == 0
+    arrays, attrs = read_store(store)
+    assert attrs["parameters"]["registration"]["shutter"] == "global"
+    assert attrs["parameters"]["changes"]["threshold"] == "kapur"
+    traj = arrays["trajectory"]
+    assert np.allclose(traj, traj[0])  # one pose for every row
+    truth = pair.change_mask
+    assert ops.confusion(arrays["change_mask"] > 0, truth).f_measure > 0.8
+
+
+def test_help_texts():
+    for command in ([], ["detect"], ["synth"], ["evaluate"]):
+        result = _invoke(command + ["--help"])
+        assert result.exit_code == 0 and "Usage" in result.output
