@@ -4,6 +4,7 @@ the per-row solvers of eq. 13, registration, change masks and metrics.
 Pure numpy (with numba-compiled inner loops); no I/O, no dask, no zarr.
 """
 
+from ._baseline import EccResult, ecc_homography
 from ._camera import AXIS_UNITS, POSE_AXES, Camera, full_poses, pose_homographies
 from ._changes import (
     ChangeParams,
@@ -37,6 +38,8 @@ __all__ = [
     "full_poses",
     "pose_homographies",
     "PoseSpace",
+    "EccResult",
+    "ecc_homography",
     "CameraPath",
     "RenderResult",
     "render",

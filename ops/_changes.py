@@ -19,6 +19,7 @@ kept too (this recovers the blurred borders of changed objects), then connected
 components smaller than ``min_area`` pixels are removed.
 """
 
+import numbers
 from dataclasses import dataclass
 
 import numba
@@ -84,7 +85,7 @@ class ChangeParams:
                     t = float(t)
                 except ValueError:
                     raise ParameterError(f"threshold: expected one of {THRESHOLD_METHODS} or a number, got {t!r}") from None
-        elif not isinstance(t, (int, float)) or isinstance(t, bool):
+        elif not isinstance(t, numbers.Real) or isinstance(t, bool):
             raise ParameterError(f"threshold: expected one of {THRESHOLD_METHODS} or a number, got {t!r}")
         if not isinstance(t, str) and not t > 0:
             raise ParameterError(f"threshold: expected a positive number, got {t!r}")

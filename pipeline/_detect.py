@@ -53,8 +53,10 @@ class DetectConfig:
     focal : float or None
         Focal length in pixels of the whole image (default 1.2 x larger side).
     agreement : float
-        A tile whose path differs from its band's by more than this (px, RMS of
-        the displacement of its row ends) is re-solved around the others' path.
+        A tile whose path differs from its band's by more than this (px: the
+        95th percentile over its rows of the displacement of the row ends), and
+        by more than three times the band's median, is re-solved around the
+        others' path.
     """
 
     registration: RegistrationParams = field(default_factory=RegistrationParams)
@@ -62,7 +64,7 @@ class DetectConfig:
     tile: int = 512
     overlap: int | None = None
     focal: float | None = None
-    agreement: float = 1.0
+    agreement: float = 2.0
 
 
 def default_overlap(params, camera, shape):
@@ -124,18 +126,20 @@ def _row_end_points(tile):
 
 
 def _disagreement(path, reference, tile, camera, axes):
-    """RMS over rows of the largest displacement between two paths at the row ends."""
+    """Per row, the largest displacement (px) between two paths at the row ends
+    (NaN where either path is unknown)."""
     ok = np.isfinite(path).all(1) & np.isfinite(reference).all(1)
+    out = np.full(len(ok), np.nan)
     if not ok.any():
-        return float("nan")
+        return out
     pts = _row_end_points(tile)[ok]
     ha = ops.pose_homographies(path[ok], camera, axes=axes)
     hb = ops.pose_homographies(reference[ok], camera, axes=axes)
     homog = np.concatenate([pts, np.ones(pts.shape[:2] + (1,))], -1)
     pa = np.einsum("rij,rpj->rpi", ha, homog)
     pb = np.einsum("rij,rpj->rpi", hb, homog)
-    d = np.linalg.norm(pa[..., :2] / pa[..., 2:] - pb[..., :2] / pb[..., 2:], axis=-1).max(-1)
-    return float(np.sqrt(np.mean(d ** 2)))
+    out[ok] = np.linalg.norm(pa[..., :2] / pa[..., 2:] - pb[..., :2] / pb[..., 2:], axis=-1).max(-1)
+    return out
 
 
 def _fuse(paths, states):
@@ -162,29 +166,36 @@ def _agreement(group, grid, camera, axes):
     states = group["tile_row_state"][:]
     fused = _fuse(paths, states)
     ny, nx = grid.grid_shape
-    agree = np.full((ny, nx), np.nan)
+    agree = np.full((ny, nx), np.nan)  # RMS displacement from the fused path, px
+    worst = np.full((ny, nx), np.nan)  # its 95th percentile over rows: a stretch of wrong rows
     for tile in grid:
         ty, tx = tile.index
         rows = tile.core[0]
-        agree[ty, tx] = _disagreement(np.where((states[rows, tx] == 1)[:, None], paths[rows, tx], np.nan),
-                                      fused[rows], tile, camera, axes)
-    return fused, paths, states, agree
+        d = _disagreement(np.where((states[rows, tx] == 1)[:, None], paths[rows, tx], np.nan),
+                          fused[rows], tile, camera, axes)
+        if np.isfinite(d).any():
+            agree[ty, tx] = np.sqrt(np.nanmean(d ** 2))
+            worst[ty, tx] = np.nanpercentile(d, 95)
+    return fused, paths, states, agree, worst
 
 
-def _outliers(agree, residual_level, tolerance):
-    """Tiles to re-solve: in each band with more than one tile, those beyond the
-    tolerance; with exactly two tiles that disagree, the one that fits worse."""
+def _outliers(worst, residual_level, tolerance):
+    """Tiles to re-solve: in each band of two or more tiles, those whose path
+    strays from the fused one by more than ``tolerance`` px and by more than
+    three times the band's typical strayness (tiles fit their rows a little
+    differently; a tile on a large change or a periodic texture strays far).
+    With two tiles that both stray, the one that fits worse is taken."""
     out = []
-    for ty in range(agree.shape[0]):
-        row = agree[ty]
-        if row.size < 2:
+    for ty in range(worst.shape[0]):
+        row = worst[ty]
+        if row.size < 2 or not np.isfinite(row).any():
             continue
-        bad = [tx for tx in range(row.size) if not row[tx] <= tolerance]
-        if not bad or len(bad) == row.size and row.size > 2:
-            continue
+        limit = max(tolerance, 3.0 * float(np.nanmedian(row)))
+        bad = [tx for tx in range(row.size) if not row[tx] <= limit]
         if row.size == 2 and len(bad) == 2:
             bad = [int(np.nanargmax(residual_level[ty]))]
-        out.extend((ty, tx) for tx in bad)
+        if len(bad) < row.size:
+            out.extend((ty, tx) for tx in bad)
     return out
 
 
@@ -286,9 +297,9 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                 timings["write_s_sum"] = float(sum(s["write_s"] for s in stats))
 
             t0 = time.perf_counter()
-            fused, paths, states, agree = _agreement(group, grid, camera, axes)
+            fused, paths, states, agree, worst = _agreement(group, grid, camera, axes)
             level = _median_level(group["work/residual_histogram"][:])
-            resolve = _outliers(agree, level, config.agreement)
+            resolve = _outliers(worst, level, config.agreement)
             if resolve:
                 log.info("re-solving %d tile(s) whose path disagrees with their band: %s", len(resolve), resolve)
                 args = []
@@ -299,7 +310,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                     prior = _fuse(others, np.delete(states[rows], tx, axis=1))
                     args.append((store, tile, camera, params, prior))
                 runner.map("re-solve", _tasks.register_task, args)
-                fused, paths, states, agree = _agreement(group, grid, camera, axes)
+                fused, paths, states, agree, worst = _agreement(group, grid, camera, axes)
             group["trajectory"][:] = fused.astype(np.float32)
             group["tile_agreement"][:] = agree.astype(np.float32)
             timings["fuse_s"] = time.perf_counter() - t0

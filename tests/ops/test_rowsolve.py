@@ -173,12 +173,15 @@ def test_warm_start_from_optimum_returns_immediately(solved, seed):
 
 @pytest.mark.parametrize("seed", [0, 4, 12])
 def test_solver_stops_at_its_own_optimum(solved, seed):
+    """Regression: well-fitting rows (small objective) once spun to max_outer, the
+    Cholesky ridge leaving a KKT residual above tol * objective with x == w."""
     _, F, g, lw, lc, _, _, (w, _, obj), exact = solved[seed]
-    assert obj <= exact.objective * (1 + REL)  # the answer itself is right ...
-    cold_obj, cold_iterations, _ = _solve_huber_nn(np.ascontiguousarray(F.T), g, np.zeros_like(w), lw, 0.5 * lc,
-                                                   1e-7, 100, 32)
+    assert obj <= exact.objective * (1 + REL)
+    _, cold_iterations, _ = _solve_huber_nn(np.ascontiguousarray(F.T), g, np.zeros_like(w), lw, 0.5 * lc,
+                                            1e-7, 100, 32)
     _, warm_iterations, _ = _warm_restart(F, g, lw, lc, w)
-    assert cold_iterations < 99 and warm_iterations == 0  # ... but it never says so
+    assert cold_iterations < 20
+    assert warm_iterations == 0
 
 
 @pytest.mark.parametrize("seed", [1, 6, 9])
@@ -226,6 +229,9 @@ def _l1_regime_problem(scene, seed, noise, lambda_chi):
 
 @pytest.mark.parametrize("seed, noise, lambda_chi", [(0, 0.01, 1e-4), (3, 0.01, 1e-4), (16, 0.05, 0.002)])
 def test_fast_solver_in_the_l1_regime(scenes, seed, noise, lambda_chi):
+    """Regression: with (almost) no inlier pixels the Newton model of a stable
+    partition was unbounded (zero Gram matrix) and the solver returned weights
+    ~1e12 and an objective ~1e12 as converged."""
     F, g, lw, lc = _l1_regime_problem(scenes[0], seed, noise, lambda_chi)
     w, _, obj = solve_row_fast(F, g, lambda_w=lw, lambda_chi=lc)
     exact = solve_row_exact(F, g, lambda_w=lw, lambda_chi=lc)

@@ -1,0 +1,282 @@
+"""``rsmb bench``: the figures the issues ask for, measured side by side in one run.
+
+Sections (``--sections``):
+
+- ``oracle``: the fast row solver against the exact cvxpy (CLARABEL) eq. 13 on
+  row problems from real aerial images (if ``--data`` has them) and synthetic
+  scenes: largest relative objective difference, per-row times and their ratio.
+- ``speed``: ``detect`` end to end (threads, all cores) on a synthetic pair with
+  in-plane motion and the paper's neighbourhoods, with the automatic ones, and
+  translation only; ECC homography time on the same image.
+- ``real``: the rolling-shutter captures of ``--data`` (GS frame against its RS
+  frame, no change): registration RMSE of ``detect`` and of ECC.
+- ``scale``: GeoTIFF pairs of growing size through ``rsmb detect`` in a
+  subprocess: peak resident memory, throughput against the per-tile kernel
+  rate, tasks per tile.
+- ``gain``: a smooth gain ramp 0.7 -> 1.3: per-tile gain error and F-measure.
+"""
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import ops
+import tiles
+
+from ._detect import DetectConfig, detect
+from ._evaluate import evaluate
+from ._synth import write_pair
+
+__all__ = ["SECTIONS", "run_bench"]
+
+SECTIONS = ("oracle", "speed", "real", "scale", "gain")
+PAPER_INPLANE = dict(axes=("tx", "ty", "rz"), half_width=(3.0, 3.0, 2.0), step=(1.0, 1.0, 0.5))
+
+
+def _echo(text):
+    print(text, flush=True)
+
+
+# ----------------------------------------------------------------------- oracle
+
+
+def _row_problems(data, count, width, seed):
+    """Row problems (F (N, K), g (N,)) with K = 441 (the paper's in-plane grid):
+    a reference (real aerial image or synthetic scene) seen through the forward
+    model with blur, noise and a pasted change."""
+    rng = np.random.default_rng(seed)
+    sources = []
+    aerial = sorted(Path(data, "aerial").glob("*.png")) if data else []
+    for path in aerial:
+        sources.append(("aerial/" + path.name, tiles.read_image(path).data))
+    sources.append(("synthetic", ops.aerial_scene((512, 512), seed=seed)))
+    params = ops.RegistrationParams(**PAPER_INPLANE)
+    problems = []
+    per_source = int(np.ceil(count / len(sources)))
+    for name, image in sources:
+        h, w = image.shape
+        for q in range(per_source):
+            y0, x0 = rng.integers(40, h - 80), rng.integers(40, w - width - 40)
+            ref = image[y0 - 40:y0 + 40, x0 - 40:x0 + width + 40].astype(np.float32)
+            camera = ops.Camera.for_shape((80, width + 80))
+            pose = np.array([rng.uniform(-2, 2), rng.uniform(-2, 2), rng.uniform(-1, 1)])
+            path = ops.CameraPath(np.array([0.0, 100.0]),
+                                  ops.full_poses(np.stack([pose, pose + [1.5, 0.5, 0.3]]), params.axes))
+            seen = ops.render(ref, path, shape=(1, width), camera=camera, exposure=40.0,
+                              source_origin_yx=(40, 40), gain=rng.uniform(0.8, 1.2))
+            g = seen.image[0] + rng.normal(0, 0.004, width).astype(np.float32)
+            if q % 2:
+                c = rng.integers(0, width - 40)
+                g[c:c + 30] = np.clip(g[c:c + 30] + 0.4, 0, 1.5)
+            space = params.resolved(camera).space
+            index, poses = space.grid(pose)
+            problem = ops._register._RowProblem(ref, g[None, :], np.ones((1, width), bool), camera, (-40, -40),
+                                                (0, 0), params.axes, space.step, 8)
+            a, gg, valid = problem.build([0], index, poses)
+            problems.append((name, a.T.copy(), gg))
+    return problems[:max(count, len(sources))]
+
+
+def bench_oracle(data, *, count=60, width=512, seed=0, lam=(1e-3, 0.02)):
+    problems = _row_problems(data, count, width, seed)
+    worst, fast_t, exact_t, build_t = 0.0, [], [], []
+    by_source = {}
+    for name, F, g in problems:
+        t = time.perf_counter()
+        _, _, fast = ops.solve_row_fast(F, g, lambda_w=lam[0], lambda_chi=lam[1])
+        fast_t.append(time.perf_counter() - t)
+        exact = ops.solve_row_exact(F, g, lambda_w=lam[0], lambda_chi=lam[1])
+        exact_t.append(exact.solve_seconds)
+        rel = (fast - exact.objective) / exact.objective
+        worst = max(worst, rel)
+        by_source.setdefault(name, []).append(rel)
+    out = {
+        "problems": len(problems), "poses": int(problems[0][1].shape[1]), "pixels": int(problems[0][1].shape[0]),
+        "max_relative_objective_excess": worst,
+        "min_relative_objective_difference": float(min(min(v) for v in by_source.values())),
+        "per_source": {k: {"count": len(v), "max": float(max(v))} for k, v in by_source.items()},
+        "fast_ms_per_row": 1e3 * float(np.median(fast_t)),
+        "cvxpy_clarabel_ms_per_row": 1e3 * float(np.median(exact_t)),
+    }
+    out["speedup"] = out["cvxpy_clarabel_ms_per_row"] / out["fast_ms_per_row"]
+    _echo(f"oracle: {out['problems']} row problems, K={out['poses']} poses, N={out['pixels']} px: fast objective "
+          f"- cvxpy objective <= {worst:.2e} relative (most negative {out['min_relative_objective_difference']:.2e}:"
+          f" fast lower); fast {out['fast_ms_per_row']:.2f} ms/row vs CLARABEL "
+          f"{out['cvxpy_clarabel_ms_per_row']:.0f} ms/row: {out['speedup']:.0f}x")
+    return out
+
+
+# ------------------------------------------------------------------------ speed
+
+
+def _pair_files(directory, size, motion="inplane", seed=0, fmt="tif", **kw):
+    pair = ops.synthesize_pair((size, size), motion=motion, seed=seed, noise=0.002, **kw)
+    ref, dist = write_pair(directory, pair, fmt=fmt, overwrite=True)
+    return pair, ref, dist
+
+
+def _detect_rate(ref, dist, store, config, workers):
+    summary = detect(ref, dist, store, config=config, workers=workers, overwrite=True)
+    return summary
+
+
+def bench_speed(workdir, *, size=2048, workers=None):
+    out = {"size": size}
+    pair, ref, dist = _pair_files(Path(workdir, "speed_inplane"), size, changes=30)
+    cases = {
+        "inplane_paper_neighbourhoods": DetectConfig(registration=ops.RegistrationParams(**PAPER_INPLANE)),
+        "inplane_auto_neighbourhoods": DetectConfig(),
+    }
+    for name, config in cases.items():
+        s = _detect_rate(ref, dist, Path(workdir, f"{name}.zarr"), config, workers)
+        scores = evaluate(Path(workdir, f"{name}.zarr"), Path(workdir, "speed_inplane"))
+        out[name] = {"megapixels_per_s": s["megapixels_per_s"], "seconds": s["timings"]["total_s"],
+                     "f_measure": scores["changes"]["f_measure"]}
+    t = time.perf_counter()
+    ecc = ops.ecc_homography(pair.reference, pair.distorted)
+    out["ecc_seconds"] = time.perf_counter() - t
+    keep = np.isfinite(ecc.registered) & ~pair.change_mask
+    out["ecc_registration_rmse_255"] = float(np.sqrt(np.mean((ecc.registered - pair.distorted)[keep] ** 2)) * 255)
+    _, ref_t, dist_t = _pair_files(Path(workdir, "speed_translation"), size, motion="translation", changes=30)
+    config = DetectConfig(registration=ops.RegistrationParams(axes=("tx", "ty"), half_width=(3.0, 3.0),
+                                                              step=(1.0, 1.0), search=(20.0, 20.0)))
+    s = _detect_rate(ref_t, dist_t, Path(workdir, "translation.zarr"), config, workers)
+    out["translation_only"] = {"megapixels_per_s": s["megapixels_per_s"], "seconds": s["timings"]["total_s"]}
+    _echo(f"speed ({size} x {size}, {os.cpu_count()} cores): in-plane, paper neighbourhoods "
+          f"{out['inplane_paper_neighbourhoods']['megapixels_per_s']:.2f} MP/s "
+          f"(F {out['inplane_paper_neighbourhoods']['f_measure']:.3f}); automatic neighbourhoods "
+          f"{out['inplane_auto_neighbourhoods']['megapixels_per_s']:.2f} MP/s "
+          f"(F {out['inplane_auto_neighbourhoods']['f_measure']:.3f}); translation only "
+          f"{out['translation_only']['megapixels_per_s']:.2f} MP/s; ECC homography {out['ecc_seconds']:.2f} s "
+          f"on the same image (its registration RMSE {out['ecc_registration_rmse_255']:.2f} /255)")
+    return out
+
+
+# ------------------------------------------------------------------------- real
+
+
+def bench_real(data, workdir, *, workers=None):
+    pairs = {
+        "bsrsc_seq_01": ("rolling_shutter/bsrsc_seq_01/gs_0_m.png", "rolling_shutter/bsrsc_seq_01/rs_0.png"),
+        "fastec_seq_01": ("rolling_shutter/fastec_seq_01/gs_1.png", "rolling_shutter/fastec_seq_01/rs_1.png"),
+    }
+    out = {}
+    for name, (ref_rel, dist_rel) in pairs.items():
+        ref_path, dist_path = Path(data, ref_rel), Path(data, dist_rel)
+        if not (ref_path.exists() and dist_path.exists()):
+            continue
+        store = Path(workdir, f"real_{name}.zarr")
+        s = detect(ref_path, dist_path, store, workers=workers, overwrite=True)
+        reference, distorted = tiles.read_image(ref_path).data, tiles.read_image(dist_path).data
+        registered = tiles.open_result_store(store)["registered"][:]
+        t = time.perf_counter()
+        ecc = ops.ecc_homography(reference, distorted)
+        ecc_s = time.perf_counter() - t
+        common = np.isfinite(registered) & np.isfinite(ecc.registered)
+        rmse = lambda a: float(np.sqrt(np.mean((a[common] - distorted[common]) ** 2)) * 255)  # noqa: E731
+        out[name] = {"rsmb_rmse_255": rmse(registered), "ecc_rmse_255": rmse(ecc.registered),
+                     "identity_rmse_255": rmse(reference), "common_fraction": float(common.mean()),
+                     "false_change_fraction": s["changed_fraction"], "rsmb_seconds": s["timings"]["total_s"],
+                     "ecc_seconds": ecc_s}
+        r = out[name]
+        _echo(f"real {name}: registration RMSE rsmb {r['rsmb_rmse_255']:.2f} vs ECC homography "
+              f"{r['ecc_rmse_255']:.2f} (no registration {r['identity_rmse_255']:.2f}; 0..255 on the "
+              f"{100 * r['common_fraction']:.0f} % both cover); false changes {100 * r['false_change_fraction']:.2f} %")
+    if not out:
+        _echo(f"real: no rolling-shutter captures under {data}; skipped")
+    return out
+
+
+# ------------------------------------------------------------------------ scale
+
+
+def _peak_rss(cmd):
+    """Run ``cmd``; return (exit code, peak resident memory of it and its children
+    in MB, seconds)."""
+    import psutil
+
+    start = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    peak = 0
+    ps = psutil.Process(proc.pid)
+    while proc.poll() is None:
+        try:
+            rss = ps.memory_info().rss + sum(c.memory_info().rss for c in ps.children(recursive=True))
+            peak = max(peak, rss)
+        except psutil.Error:
+            pass
+        time.sleep(0.05)
+    stdout, stderr = proc.communicate()
+    if proc.returncode:
+        raise RuntimeError(f"{' '.join(map(str, cmd))} failed: {stderr.strip()[-2000:]}")
+    return stdout, peak / 1e6, time.perf_counter() - start
+
+
+def bench_scale(workdir, *, sizes=(2048, 4096, 8192), tile=512):
+    out = {}
+    for size in sizes:
+        directory = Path(workdir, f"scale_{size}")
+        _pair_files(directory, size, changes=max(8, size * size // 100000))
+        store = Path(workdir, f"scale_{size}.zarr")
+        cmd = [sys.executable, "-m", "pipeline.cli", "-q", "detect", str(directory / "reference.tif"),
+               str(directory / "distorted.tif"), "-o", str(store), "--tile-size", str(tile), "--overwrite", "--json"]
+        stdout, peak, wall = _peak_rss(cmd)
+        s = json.loads(stdout)
+        t = s["timings"]
+        workers = os.cpu_count() or 1
+        kernel_rate = size * size / 1e6 / (t["kernel_s_sum"] / workers)
+        scores = evaluate(store, directory)
+        out[size] = {"peak_rss_mb": peak, "megapixels_per_s": s["megapixels_per_s"],
+                     "kernel_megapixels_per_s": kernel_rate, "overhead_fraction": 1 - s["megapixels_per_s"] / kernel_rate,
+                     "tasks_per_tile": s["tasks_per_tile"], "tiles": s["tiles"], "halo": s["halo"],
+                     "seconds": t["total_s"], "f_measure": scores["changes"]["f_measure"]}
+        r = out[size]
+        _echo(f"scale {size} x {size}: peak RSS {r['peak_rss_mb']:.0f} MB, {r['megapixels_per_s']:.2f} MP/s end to "
+              f"end vs {r['kernel_megapixels_per_s']:.2f} MP/s per-tile kernel rate x {workers} workers "
+              f"(overhead {100 * r['overhead_fraction']:.1f} %), {r['tasks_per_tile']:.1f} tasks/tile, "
+              f"{r['tiles'][0]}x{r['tiles'][1]} tiles, halo {r['halo']} px, F {r['f_measure']:.3f}, "
+              f"{r['seconds']:.0f} s")
+    return out
+
+
+# ------------------------------------------------------------------------- gain
+
+
+def bench_gain(workdir, *, size=2048, workers=None):
+    directory = Path(workdir, "gain")
+    _pair_files(directory, size, gain=(0.7, 1.3), changes=30)
+    store = Path(workdir, "gain.zarr")
+    detect(directory / "reference.tif", directory / "distorted.tif", store, workers=workers, overwrite=True)
+    scores = evaluate(store, directory)
+    out = {"max_relative_gain_error": scores["gain"]["max_relative_error"],
+           "f_measure": scores["changes"]["f_measure"]}
+    _echo(f"gain ramp 0.7 -> 1.3 ({size} x {size}): per-tile gain error max "
+          f"{100 * out['max_relative_gain_error']:.2f} %, F {out['f_measure']:.3f}")
+    return out
+
+
+def run_bench(*, sections=SECTIONS, data=None, quick=False, workdir=None, sizes=None, workers=None):
+    """Run the benchmark sections; returns a dict of results (also printed)."""
+    data = Path(data) if data else None
+    if data is not None and not data.exists():
+        _echo(f"bench: data directory {data} not found; real-image parts are skipped")
+        data = None
+    results = {"cores": os.cpu_count(), "quick": quick}
+    with tempfile.TemporaryDirectory(prefix="rsmb-bench-", dir=workdir) as tmp:
+        if "oracle" in sections:
+            results["oracle"] = bench_oracle(data, count=12 if quick else 60, width=256 if quick else 512)
+        if "speed" in sections:
+            results["speed"] = bench_speed(tmp, size=512 if quick else 2048, workers=workers)
+        if "real" in sections and data is not None:
+            results["real"] = bench_real(data, tmp, workers=workers)
+        if "scale" in sections:
+            results["scale"] = bench_scale(tmp, sizes=sizes or ((512, 1024) if quick else (2048, 4096, 8192)))
+        if "gain" in sections:
+            results["gain"] = bench_gain(tmp, size=512 if quick else 2048, workers=workers)
+    return results
