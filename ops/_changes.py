@@ -22,10 +22,10 @@ components smaller than ``min_area`` pixels are removed.
 import numbers
 from dataclasses import dataclass
 
+import cv2
 import numba
 import numpy as np
 from scipy import ndimage
-from scipy.ndimage import maximum_filter
 
 from ._camera import pose_homographies
 from ._errors import ParameterError
@@ -174,7 +174,8 @@ def change_candidates(score, threshold, *, params=ChangeParams()):
     score = np.nan_to_num(np.asarray(score, dtype=np.float32))
     mask = score > params.hysteresis * threshold
     if params.half_max_window > 1:
-        mask &= score >= params.half_max * maximum_filter(score, size=params.half_max_window)
+        kernel = np.ones((params.half_max_window, params.half_max_window), np.uint8)
+        mask &= score >= params.half_max * cv2.dilate(score, kernel)  # a maximum filter
     return mask
 
 

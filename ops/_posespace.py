@@ -1,5 +1,6 @@
 """Pose spaces ``N(c, b, s)``: grids of poses on named axes (METHOD.md section 3)."""
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -8,6 +9,15 @@ from ._camera import POSE_AXES
 from ._errors import ParameterError
 
 __all__ = ["PoseSpace"]
+
+
+@functools.lru_cache(maxsize=64)
+def _offsets(counts):
+    ranges = [np.arange(-(n // 2), n // 2 + 1) for n in counts]
+    mesh = np.meshgrid(*ranges, indexing="ij")
+    out = np.stack([m.ravel() for m in mesh], axis=-1)
+    out.setflags(write=False)
+    return out
 
 
 @dataclass(frozen=True)
@@ -56,10 +66,9 @@ class PoseSpace:
         return int(np.prod(self.counts))
 
     def offsets(self):
-        """Lattice offsets of the grid from its centre: int array (|S|, D)."""
-        ranges = [np.arange(-(n // 2), n // 2 + 1) for n in self.counts]
-        mesh = np.meshgrid(*ranges, indexing="ij")
-        return np.stack([m.ravel() for m in mesh], axis=-1)
+        """Lattice offsets of the grid from its centre: int array (|S|, D)
+        (shared and read-only: the same for every row)."""
+        return _offsets(self.counts)
 
     def snap(self, center):
         """Lattice index (int array, shape (D,)) of the lattice point nearest ``center``."""

@@ -19,7 +19,7 @@ from ._camera import POSE_AXES, Camera, full_poses
 from ._errors import ParameterError
 from ._oracle import solve_row_exact
 from ._posespace import PoseSpace
-from ._rowsolve import _build_row, _gather_row, _remap_rows, _solve_huber_nn, _synthesize
+from ._rowsolve import _build_row, _gather_row, _remap_rows, _row_step, _solve_huber_nn, _synthesize
 
 __all__ = ["RegistrationParams", "Registration", "register"]
 
@@ -202,6 +202,7 @@ class _RowProblem:
         self.ref = reference
         self.dist = distorted
         self.dist_valid = dist_valid
+        self.dist_all_valid = bool(dist_valid.all())
         self.focal = float(camera.focal)
         self.cx = camera.center_xy[0] - ref_origin[1]
         self.cy = camera.center_xy[1] - ref_origin[0]
@@ -215,6 +216,7 @@ class _RowProblem:
         self.gather = whole
         self.other = [d for d, a in enumerate(axes) if a not in ("tx", "ty")]
         self.slots = {}
+        self.slot_cache = {}
         self.stack = None
         # pre-warped images cover the distorted window plus the largest shift
         self.margin = int(margin)
@@ -241,31 +243,46 @@ class _RowProblem:
             self.slots[key] = slot
         return slot
 
+    def _slots_of(self, index):
+        """Pre-warped image of every pose of a grid (by its non-translation part)."""
+        if not self.other:
+            self._slot((), index[0])
+            return np.zeros(len(index), dtype=np.int64)
+        # grids are a centre plus fixed offsets: the slots depend on the centre only
+        key = (len(index),) + tuple(index[len(index) // 2, self.other])
+        slots = self.slot_cache.get(key)
+        if slots is None:
+            keys, inverse = np.unique(index[:, self.other], axis=0, return_inverse=True)
+            first = np.unique(inverse.ravel(), return_index=True)[1]
+            slots = np.array([self._slot(tuple(keys[u]), index[f]) for u, f in enumerate(first)],
+                             dtype=np.int64)[inverse.ravel()]
+            self.slot_cache[key] = slots
+        return slots
+
     def build(self, rows, index, poses):
         """A (K, len(rows) * W) float32 and g (N,) float64 with invalid pixels
         zeroed, plus valid (N,) bool, for poses on lattice ``index`` (K, D)."""
         k, n = poses.shape[0], self.width
         a = np.empty((k, len(rows) * n), dtype=np.float32)
         valid = np.empty(len(rows) * n, dtype=bool)
-        buf = np.empty((k, n), dtype=np.float32)
         if self.gather:
-            keys, inverse = np.unique(index[:, self.other], axis=0, return_inverse=True)
-            first = np.unique(inverse.ravel(), return_index=True)[1]
-            slot = np.array([self._slot(tuple(keys[u]), index[f]) for u, f in enumerate(first)],
-                            dtype=np.int64)[inverse.ravel()]
-            shift_x = np.rint(poses[:, self.axes.index("tx")]).astype(np.int64) if "tx" in self.axes else np.zeros(k, np.int64)
-            shift_y = np.rint(poses[:, self.axes.index("ty")]).astype(np.int64) if "ty" in self.axes else np.zeros(k, np.int64)
+            slot = self._slots_of(index)
+            shift = np.rint(poses).astype(np.int64)
+            shift_x = shift[:, self.axes.index("tx")] if "tx" in self.axes else np.zeros(k, np.int64)
+            shift_y = shift[:, self.axes.index("ty")] if "ty" in self.axes else np.zeros(k, np.int64)
         else:
             poses6 = full_poses(poses, self.axes)
         for q, i in enumerate(rows):
+            # write straight into the block's columns of this row
+            buf = a[:, q * n:(q + 1) * n] if len(rows) > 1 else a
             if self.gather:
                 v = _gather_row(self.stack, slot, shift_y, shift_x, int(i + self.margin), self.margin, buf)
             else:
                 v = _build_row(self.ref, float(i + self.dy), float(self.dx), poses6, self.focal, self.cx, self.cy, buf)
-            a[:, q * n:(q + 1) * n] = buf
             valid[q * n:(q + 1) * n] = (v != 0) & self.dist_valid[i]
-        a[:, ~valid] = 0.0
-        g = np.where(valid, self.dist[rows].ravel(), 0.0).astype(np.float64)
+        if not self.dist_all_valid:
+            a[:, ~valid] = 0.0
+        g = np.where(valid, self.dist[rows].ravel(), 0.0)
         return a, g, valid
 
 
@@ -390,11 +407,20 @@ class _Solver:
         self.params = params
         self.delta = 0.5 * params.lambda_chi
 
+    @property
+    def fast_rows(self):
+        """Rows can take the single-call path (gathered F_i, fast solver)."""
+        return self.problem.gather and self.params.solver == "fast"
+
+    @staticmethod
+    def min_valid(size):
+        return int(np.ceil(max(MIN_VALID_PIXELS, MIN_VALID_FRACTION * size)))
+
     def solve(self, rows, space, center, w0=None):
         index, poses = space.grid(center)
         a, g, valid = self.problem.build(rows, index, poses)
         self.last_cost = np.inf
-        if valid.sum() < max(MIN_VALID_PIXELS, MIN_VALID_FRACTION * valid.size):
+        if valid.sum() < self.min_valid(valid.size):
             # too little of the row sees the reference: nothing to solve
             valid[:] = False
             return index, poses, np.zeros(len(poses)), a, valid
@@ -500,9 +526,11 @@ def _apply_gain_slope(out, dist, delta, iterations=8):
         return
     width = dist.shape[1]
     u = (np.arange(width) - (width - 1) / 2.0)[None, :] * np.ones((dist.shape[0], 1))
-    reg = np.where(valid, out.registered, 0.0).astype(np.float64)
-    y = (dist - reg)[valid]
-    z = (reg * u)[valid]
+    sample = valid.copy()
+    sample[1::2] = False  # every other row is plenty for one parameter
+    reg = out.registered[sample].astype(np.float64)
+    y = dist[sample] - reg
+    z = reg * u[sample]
     b = 0.0
     for _ in range(iterations):
         r = y - b * z
@@ -622,16 +650,54 @@ class _Propagation:
     def __init__(self, solver, space, out):
         self.solver, self.space, self.out = solver, space, out
         self.weights = {}
+        self._grid_key, self._grid, self._a = None, None, None
+        self.counts, self.size = space.counts, space.size
+        self.step = np.asarray(space.step)
+        self.offsets_step = space.offsets() * self.step
 
     def solve_row(self, i, c, neighbour):
+        space = self.space
+        center = np.round(np.asarray(c, dtype=np.float64) / self.step).astype(np.int64)
         w0 = None
         if neighbour is not None and neighbour in self.weights:
             idx_n, w_n = self.weights[neighbour]
-            w0 = _shift_weights(w_n, self.space.counts, self.space.snap(c) - idx_n)
-        index, poses, w, a, valid = self.solver.solve([i], self.space, c, w0)
-        self.weights[i] = (self.space.snap(c), w)
+            w0 = _shift_weights(w_n, self.counts, center - idx_n)
+        if self.solver.fast_rows:
+            w = self._fast_row(i, center, w0)
+            total = w.sum()
+            self.weights[i] = (center, w)
+            return center * self.step + (w @ self.offsets_step) / total if total > 0 else None
+        index, poses, w, a, valid = self.solver.solve([i], space, c, w0)
+        self.weights[i] = (center, w)
         self.out.store(i, w, a, valid, self.solver.problem.dist[i].astype(np.float64), self.solver.delta)
         return _centroid(poses, w)
+
+    def _fast_row(self, i, center, w0):
+        """The whole row in one compiled call (gathered F_i, fast solver)."""
+        solver, space, problem, out = self.solver, self.space, self.solver.problem, self.out
+        key = tuple(center)
+        if self._grid_key != key:
+            index = center[None, :] + space.offsets()
+            poses = space.lattice_poses(index)
+            slot = problem._slots_of(index)
+            shift = np.rint(poses).astype(np.int64)
+            axes = problem.axes
+            zeros = np.zeros(len(index), np.int64)
+            self._grid = (slot, shift[:, axes.index("ty")] if "ty" in axes else zeros,
+                          shift[:, axes.index("tx")] if "tx" in axes else zeros)
+            self._grid_key = key
+        slot, shift_y, shift_x = self._grid
+        w = np.zeros(self.size) if w0 is None else w0
+        if self._a is None:
+            self._a = np.empty((self.size, problem.width), dtype=np.float32)
+        p = solver.params
+        objective, count = _row_step(problem.stack, slot, shift_y, shift_x, int(i + problem.margin), problem.margin,
+                                     problem.dist[i], problem.dist_valid[i], w, p.lambda_w, solver.delta, p.tol,
+                                     p.max_outer, p.max_add, solver.min_valid(problem.width), self._a,
+                                     out.registered[i], out.chi[i], out.valid[i])
+        solver.last_cost = objective / max(count, 1)
+        out.row_gain[i] = w.sum()
+        return w
 
     def from_row(self, start, center, informative):
         out, height = self.out, len(informative)

@@ -30,6 +30,9 @@ import numpy as np
 __all__ = []
 
 _JIT = dict(nogil=True, cache=True)
+# sums over the pixels of a row may be reassociated (vectorised); no other
+# fast-math liberty is taken (NaN tests must keep working)
+_SUMS = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})
 
 
 @numba.njit(**_JIT)
@@ -128,7 +131,7 @@ def _psi(r, delta):
     return 2.0 * r
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_SUMS)
 def _objective(r, w, lam, delta):
     total = 0.0
     for j in range(r.shape[0]):
@@ -136,7 +139,7 @@ def _objective(r, w, lam, delta):
     return total + lam * np.sum(w)
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_SUMS)
 def _gradient(a, r, lam, delta, out):
     k_count, n = a.shape
     psi = np.empty(n)
@@ -254,7 +257,7 @@ def _nnqp(h, b, x, tol):
         free[best_p] = True
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_SUMS)
 def _line_search(r, e, slope_w, delta):
     """Exact minimiser over t in [0, 1] of sum rho(r - t e) + t * slope_w."""
 
@@ -295,7 +298,7 @@ def _line_search(r, e, slope_w, delta):
     return t
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_SUMS)
 def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
     """Minimise sum rho(g - a' w) + lam sum w over w >= 0 (in place).
 
@@ -436,7 +439,7 @@ def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
     return obj, it, viol
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_SUMS)
 def _synthesize(a, w, out):
     """out (N,) = a' w, the registered (warped and blurred) row."""
     k_count, n = a.shape
@@ -542,3 +545,53 @@ def _gather_row(stack, slot, shift_y, shift_x, y, x0, out):
             for k in range(k_count):
                 out[k, j] = 0.0
     return valid
+
+
+@numba.njit(**_SUMS)
+def _row_step(stack, slot, shift_y, shift_x, y, x0, g_row, g_valid, w, lam, delta, tol, max_outer, max_add,
+              min_valid, a, reg_out, chi_out, valid_out):
+    """One row of the propagation in a single call (no Python in between):
+    gather ``F_i``, solve eq. 13 warm-started from ``w`` (in place), and write
+    the registered row, the change term and the validity into the outputs
+    (NaN / 0 / False where invalid).  Returns (objective, valid pixel count);
+    the objective is inf when too few pixels are valid to solve.
+    """
+    k_count, n = a.shape
+    v = _gather_row(stack, slot, shift_y, shift_x, y, x0, a)
+    g = np.empty(n)
+    count = 0
+    for j in range(n):
+        ok = v[j] != 0 and g_valid[j]
+        valid_out[j] = ok
+        if ok:
+            g[j] = g_row[j]
+            count += 1
+        else:
+            g[j] = 0.0
+            for k in range(k_count):
+                a[k, j] = 0.0
+    if count < min_valid:
+        for k in range(k_count):
+            w[k] = 0.0
+        for j in range(n):
+            valid_out[j] = False
+            reg_out[j] = np.nan
+            chi_out[j] = 0.0
+        return np.inf, count
+    obj, _, _ = _solve_huber_nn(a, g, w, lam, delta, tol, max_outer, max_add)
+    reg = np.empty(n)
+    _synthesize(a, w, reg)
+    for j in range(n):
+        if valid_out[j]:
+            reg_out[j] = reg[j]
+            r = g_row[j] - reg[j]
+            if r > delta:
+                chi_out[j] = r - delta
+            elif r < -delta:
+                chi_out[j] = r + delta
+            else:
+                chi_out[j] = 0.0
+        else:
+            reg_out[j] = np.nan
+            chi_out[j] = 0.0
+    return obj, count

@@ -102,19 +102,36 @@ def _specs(grid, dims):
         "change_mask": spec((h, w), "uint8", (t, t), ("y", "x")),
         "change_mask_reference": spec((h, w), "uint8", (t, t), ("y", "x")),
         "trajectory": spec((h, dims), "float32", (t, dims), ("y", "pose_axis"), float("nan")),
-        "tile_trajectory": spec((h, nx, dims), "float32", (t, 1, dims), ("y", "tile_x", "pose_axis"), float("nan")),
-        "tile_row_state": spec((h, nx), "uint8", (t, 1), ("y", "tile_x")),
-        "gain": spec((ny, nx), "float32", (1, 1), ("tile_y", "tile_x"), float("nan")),
+        "tile_trajectory": spec((h, nx, dims), "float32", (h, nx, dims), ("y", "tile_x", "pose_axis"), float("nan")),
+        "tile_row_state": spec((h, nx), "uint8", (h, nx), ("y", "tile_x")),
+        "gain": spec((ny, nx), "float32", (ny, nx), ("tile_y", "tile_x"), float("nan")),
         "tile_agreement": spec((ny, nx), "float32", (ny, nx), ("tile_y", "tile_x"), float("nan")),
-        "work/residual_histogram": spec((ny, nx, 1024), "int64", (1, 1, 1024), ("tile_y", "tile_x", "bin")),
-        "work/score_histogram": spec((ny, nx, 512), "int64", (1, 1, 512), ("tile_y", "tile_x", "bin")),
-        "work/tile_seconds": spec((ny, nx), "float32", (1, 1), ("tile_y", "tile_x"), float("nan")),
-        "work/tile_done": spec((ny, nx), "uint8", (1, 1), ("tile_y", "tile_x")),
-        "work/labels": spec((h, w), "int32", (t, t), ("y", "x")),
+        # scratch, one chunk per tile, deleted when the run finishes
+        "work/tile_rows": spec((h, nx, dims + 1), "float32", (t, 1, dims + 1), ("y", "tile_x", "column"),
+                               float("nan"), compressed=False),
+        "work/tile_summary": spec((ny, nx, _SUMMARY), "float64", (1, 1, _SUMMARY), ("tile_y", "tile_x", "value"),
+                                  compressed=False),
+        "work/tile_done": spec((ny, nx), "uint8", (1, 1), ("tile_y", "tile_x"), compressed=False),
+        "work/labels": spec((h, w), "int32", (t, t), ("y", "x"), compressed=False),
         "ingest/reference_windows": spec((ny, nx, wh, ww), "float32", (1, 1, wh, ww),
-                                         ("tile_y", "tile_x", "window_y", "window_x"), float("nan")),
-        "ingest/distorted": spec((h, w), "float32", (t, t), ("y", "x"), float("nan")),
+                                         ("tile_y", "tile_x", "window_y", "window_x"), float("nan"), compressed=False),
+        "ingest/distorted": spec((h, w), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
     }
+
+
+_HIST = (1024, 512)  # bins of ops.ScoreHistogram: residual, score
+_SUMMARY = sum(_HIST) + 2  # histograms, gain, seconds
+
+
+def _tile_results(group):
+    """Per-tile results of stage 1 from the scratch arrays: trajectories (H, nx, D),
+    row states (H, nx), summed histogram, gains (ny, nx), seconds (ny, nx)."""
+    rows = group["work/tile_rows"][:]
+    summary = group["work/tile_summary"][:]
+    hist = ops.ScoreHistogram(summary[..., :_HIST[0]].sum((0, 1)).astype(np.int64),
+                              summary[..., _HIST[0]:sum(_HIST)].sum((0, 1)).astype(np.int64))
+    states = np.nan_to_num(rows[..., -1]).astype(np.uint8)
+    return rows[..., :-1].astype(np.float64), states, hist, summary[..., :_HIST[0]], summary[..., -2], summary[..., -1]
 
 
 def _row_end_points(tile):
@@ -161,9 +178,7 @@ def _fuse(paths, states):
     return fused
 
 
-def _agreement(group, grid, camera, axes):
-    paths = group["tile_trajectory"][:].astype(np.float64)
-    states = group["tile_row_state"][:]
+def _agreement(paths, states, grid, camera, axes):
     fused = _fuse(paths, states)
     ny, nx = grid.grid_shape
     agree = np.full((ny, nx), np.nan)  # RMS displacement from the fused path, px
@@ -176,7 +191,7 @@ def _agreement(group, grid, camera, axes):
         if np.isfinite(d).any():
             agree[ty, tx] = np.sqrt(np.nanmean(d ** 2))
             worst[ty, tx] = np.nanpercentile(d, 95)
-    return fused, paths, states, agree, worst
+    return fused, agree, worst
 
 
 def _outliers(worst, residual_level, tolerance):
@@ -190,7 +205,8 @@ def _outliers(worst, residual_level, tolerance):
         row = worst[ty]
         if row.size < 2 or not np.isfinite(row).any():
             continue
-        limit = max(tolerance, 3.0 * float(np.nanmedian(row)))
+        # a median of two is their mean: with two tiles only the tolerance can judge
+        limit = tolerance if row.size == 2 else max(tolerance, 3.0 * float(np.nanmedian(row)))
         bad = [tx for tx in range(row.size) if not row[tx] <= limit]
         if row.size == 2 and len(bad) == 2:
             bad = [int(np.nanargmax(residual_level[ty]))]
@@ -200,7 +216,8 @@ def _outliers(worst, residual_level, tolerance):
 
 
 def _median_level(hist):
-    """Median |residual| of each tile from its histogram (a fit-quality level)."""
+    """Median |residual| of each tile from its histogram (ny, nx, bins): a
+    fit-quality level."""
     edges = ops._changes._RESIDUAL_EDGES
     cum = np.cumsum(hist, axis=-1)
     idx = (cum < 0.5 * cum[..., -1:]).sum(-1)
@@ -297,9 +314,9 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                 timings["write_s_sum"] = float(sum(s["write_s"] for s in stats))
 
             t0 = time.perf_counter()
-            fused, paths, states, agree, worst = _agreement(group, grid, camera, axes)
-            level = _median_level(group["work/residual_histogram"][:])
-            resolve = _outliers(worst, level, config.agreement)
+            paths, states, _, residual_hists, _, _ = _tile_results(group)
+            fused, agree, worst = _agreement(paths, states, grid, camera, axes)
+            resolve = _outliers(worst, _median_level(residual_hists), config.agreement)
             if resolve:
                 log.info("re-solving %d tile(s) whose path disagrees with their band: %s", len(resolve), resolve)
                 args = []
@@ -310,14 +327,16 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                     prior = _fuse(others, np.delete(states[rows], tx, axis=1))
                     args.append((store, tile, camera, params, prior))
                 runner.map("re-solve", _tasks.register_task, args)
-                fused, paths, states, agree, worst = _agreement(group, grid, camera, axes)
+            paths, states, hist, _, gains, _ = _tile_results(group)
+            fused, agree, worst = _agreement(paths, states, grid, camera, axes)
             group["trajectory"][:] = fused.astype(np.float32)
+            group["tile_trajectory"][:] = paths.astype(np.float32)
+            group["tile_row_state"][:] = states
+            group["gain"][:] = gains.astype(np.float32)
             group["tile_agreement"][:] = agree.astype(np.float32)
             timings["fuse_s"] = time.perf_counter() - t0
 
             t0 = time.perf_counter()
-            hist = ops.ScoreHistogram(group["work/residual_histogram"][:].sum((0, 1)),
-                                      group["work/score_histogram"][:].sum((0, 1)))
             threshold = ops.change_threshold(hist, params=config.changes)
             summaries = runner.map("label", _tasks.label_task,
                                    [(store, t, shape, threshold, config.changes) for t in grid])
@@ -336,7 +355,6 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             timings["changes_s"] = time.perf_counter() - t0
             tasks_per_tile = runner.tasks_run / len(grid)
 
-        gains = group["gain"][:]
         timings["total_s"] = time.perf_counter() - t_start
         summary = {
             "output": str(output),

@@ -53,14 +53,11 @@ def register_task(store, tile, camera, params, prior=None):
     write_start = time.perf_counter()
     group["registered"][tile.core] = result.registered
     group["change_score"][tile.core] = score.astype(np.float32)
-    group["tile_trajectory"][tile.core[0], tx] = result.trajectory.astype(np.float32)
-    group["tile_row_state"][tile.core[0], tx] = result.row_state
-    group["work/residual_histogram"][ty, tx] = hist.residual
-    group["work/score_histogram"][ty, tx] = hist.score
-    group["gain"][ty, tx] = np.float32(result.gain)
+    group["work/tile_rows"][tile.core[0], tx] = np.concatenate(
+        [result.trajectory, result.row_state[:, None]], axis=1).astype(np.float32)
     seconds = time.perf_counter() - start
-    group["work/tile_seconds"][ty, tx] = np.float32(seconds)
-    group["work/tile_done"][ty, tx] = np.uint8(1)
+    group["work/tile_summary"][ty, tx] = np.concatenate([hist.residual, hist.score, [result.gain, seconds]])
+    group["work/tile_done"][ty, tx] = np.uint8(1)  # last: the tile is complete
     return {"index": tile.index, "seconds": seconds, "read_s": read, "write_s": time.perf_counter() - write_start,
             "kernel_s": write_start - start - read, "pixels": h * w, "gain": result.gain}
 

@@ -62,6 +62,9 @@ class ArraySpec:
         Dimension names, same length as ``shape``, e.g. ``("y", "x")``.
     fill_value : int or float, default 0
         Value of chunks never written.
+    compressed : bool, default True
+        False for scratch arrays that are written once, read once and deleted
+        (no time spent compressing them).
     """
 
     shape: tuple[int, ...]
@@ -69,6 +72,7 @@ class ArraySpec:
     chunks: tuple[int, ...]
     dims: tuple[str, ...]
     fill_value: int | float = 0
+    compressed: bool = True
 
     def __post_init__(self) -> None:
         shape = tuple(int(n) for n in self.shape)
@@ -246,6 +250,7 @@ def create_result_store(
                 dtype=spec.dtype,
                 dimension_names=spec.dims,
                 fill_value=spec.fill_value,
+                **({} if spec.compressed else {"compressors": None}),
             )
     except BaseException:
         abort_result_store(tmp)

@@ -250,10 +250,6 @@ def test_change_params_normalises_numbers():
     assert ChangeParams(threshold="kapur").threshold == "kapur"
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "BUG ops._changes.ChangeParams: a NumPy scalar threshold (np.float32, np.int64, e.g. from "
-    "np.quantile or a computed array) is rejected, because the check is isinstance(t, (int, float)); "
-    "numbers.Real (or np.floating / np.integer) would accept it"))
 @pytest.mark.parametrize("threshold", [np.float32(0.2), np.int64(1)])
 def test_change_params_accepts_numpy_scalars(threshold):
     assert ChangeParams(threshold=threshold).threshold == pytest.approx(float(threshold))
