@@ -255,6 +255,17 @@ def demo(out_dir, size, tile_size, scheduler, overwrite):
     click.echo(f"report: {result['report']}")
 
 
+@cli.command("run")
+@click.argument("workflow", type=click.Path(dir_okay=False))
+@click.option("--scheduler", default=None, help="Override the workflow's scheduler.")
+def run_command(workflow, scheduler):
+    """Run a nightly WORKFLOW file (YAML): synth, detect, evaluate and report steps."""
+    from ._workflow import run_workflow
+
+    for step in run_workflow(workflow, scheduler=scheduler):
+        click.echo(f"step {step['step']} {step['kind']}: {step['seconds']:.1f} s")
+
+
 def main(argv=None):
     """Entry point: runs the CLI and maps errors to exit codes."""
     try:
