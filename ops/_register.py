@@ -193,12 +193,16 @@ class _RowProblem:
     window, in the reference window's pixel frame.
 
     When tx and ty are searched on whole-pixel steps, the reference is warped
-    once per distinct value of the other axes (lazily, a few per window) and
-    ``F_i`` is gathered from those images by integer shifts: exact, and far
-    cheaper than resampling every pose of every row.
+    once per distinct value of the other axes and band of rows (lazily: a
+    rotation is warped only over the rows that use it) and ``F_i`` is gathered
+    from those images by integer shifts: exact, because translation comes last
+    in the camera model, and far cheaper than resampling every pose of every row.
     """
 
-    def __init__(self, reference, distorted, dist_valid, camera, ref_origin, dist_origin, axes, steps, margin):
+    BAND = 64
+
+    def __init__(self, reference, distorted, dist_valid, camera, ref_origin, dist_origin, axes, steps, margin,
+                 row_pad=16):
         self.ref = reference
         self.dist = distorted
         self.dist_valid = dist_valid
@@ -212,71 +216,88 @@ class _RowProblem:
         self.width = distorted.shape[1]
         self.steps = np.asarray(steps, dtype=np.float64)
         shift_axes = [a for a in ("tx", "ty") if a in axes]
-        whole = all(float(self.steps[axes.index(a)]).is_integer() for a in shift_axes)
-        self.gather = whole
+        self.gather = all(float(self.steps[axes.index(a)]).is_integer() for a in shift_axes)
         self.other = [d for d, a in enumerate(axes) if a not in ("tx", "ty")]
+        self.ty = axes.index("ty") if "ty" in axes else None
+        self.tx = axes.index("tx") if "tx" in axes else None
         self.slots = {}
         self.slot_cache = {}
         self.stack = None
-        # pre-warped images cover the distorted window plus the largest shift
+        # columns: the distorted window plus the largest shift; rows: one band
+        # plus room for the grid's ty offsets around its centre
         self.margin = int(margin)
-        self.stack_origin = (self.dy - self.margin, self.dx - self.margin)
-        self.stack_shape = (distorted.shape[0] + 2 * self.margin, distorted.shape[1] + 2 * self.margin)
+        self.pad = int(row_pad)
+        self.stack_shape = (self.BAND + 2 * self.pad, distorted.shape[1] + 2 * self.margin)
 
-    def _slot(self, key, index):
-        slot = self.slots.get(key)
+    def band_of(self, row, center_shift_y):
+        """Band of pre-warped rows serving ``row`` on a grid centred at ty shift
+        ``center_shift_y`` (px), and the row's index inside the band's images."""
+        y = row + self.margin - center_shift_y
+        band = y // self.BAND
+        return band, row + self.margin - (band * self.BAND - self.pad)
+
+    def _slot(self, key, index, band):
+        slot = self.slots.get((key, band))
         if slot is None:
             slot = len(self.slots)
             if self.stack is None or slot == self.stack.shape[0]:
-                grow = np.empty((max(8, 2 * slot),) + self.stack_shape, dtype=np.float32)
+                grow = np.empty((max(16, 2 * slot),) + self.stack_shape, dtype=np.float32)
                 if self.stack is not None:
                     grow[:slot] = self.stack
                 self.stack = grow
             pose = np.zeros(len(self.axes))
             pose[self.other] = np.asarray(index, dtype=np.float64)[self.other] * self.steps[self.other]
             poses = np.broadcast_to(full_poses(pose, self.axes), (self.stack_shape[0], 1, 6)).copy()
-            oy, ox = self.stack_origin
+            first_row = self.dy - self.margin + band * self.BAND - self.pad
             image, valid = _remap_rows(self.ref, poses, self.focal, self.cx, self.cy, self.stack_shape[1],
-                                       float(oy), float(ox))
+                                       float(first_row), float(self.dx - self.margin))
             image[valid == 0] = np.nan
             self.stack[slot] = image
-            self.slots[key] = slot
+            self.slots[(key, band)] = slot
         return slot
 
-    def _slots_of(self, index):
+    def _slots_of(self, index, band):
         """Pre-warped image of every pose of a grid (by its non-translation part)."""
         if not self.other:
-            self._slot((), index[0])
-            return np.zeros(len(index), dtype=np.int64)
+            return np.full(len(index), self._slot((), index[0], band), dtype=np.int64)
         # grids are a centre plus fixed offsets: the slots depend on the centre only
-        key = (len(index),) + tuple(index[len(index) // 2, self.other])
+        key = (len(index), band) + tuple(index[len(index) // 2, self.other])
         slots = self.slot_cache.get(key)
         if slots is None:
             keys, inverse = np.unique(index[:, self.other], axis=0, return_inverse=True)
             first = np.unique(inverse.ravel(), return_index=True)[1]
-            slots = np.array([self._slot(tuple(keys[u]), index[f]) for u, f in enumerate(first)],
+            slots = np.array([self._slot(tuple(keys[u]), index[f], band) for u, f in enumerate(first)],
                              dtype=np.int64)[inverse.ravel()]
             self.slot_cache[key] = slots
         return slots
 
+    def shifts(self, poses):
+        """Whole-pixel ty and tx shifts of grid poses: two int arrays (K,)."""
+        shift = np.rint(poses).astype(np.int64)
+        zeros = np.zeros(len(poses), np.int64)
+        return (shift[:, self.ty] if self.ty is not None else zeros,
+                shift[:, self.tx] if self.tx is not None else zeros)
+
+    def gather_args(self, row, index, poses):
+        """(slots, ty shifts, tx shifts, row inside the band) for one row."""
+        shift_y, shift_x = self.shifts(poses)
+        band, y = self.band_of(row, int(shift_y[len(shift_y) // 2]))
+        return self._slots_of(index, band), shift_y, shift_x, y
+
     def build(self, rows, index, poses):
-        """A (K, len(rows) * W) float32 and g (N,) float64 with invalid pixels
-        zeroed, plus valid (N,) bool, for poses on lattice ``index`` (K, D)."""
+        """A (K, len(rows) * W) float32 and g (N,) with invalid pixels zeroed,
+        plus valid (N,) bool, for poses on lattice ``index`` (K, D)."""
         k, n = poses.shape[0], self.width
         a = np.empty((k, len(rows) * n), dtype=np.float32)
         valid = np.empty(len(rows) * n, dtype=bool)
-        if self.gather:
-            slot = self._slots_of(index)
-            shift = np.rint(poses).astype(np.int64)
-            shift_x = shift[:, self.axes.index("tx")] if "tx" in self.axes else np.zeros(k, np.int64)
-            shift_y = shift[:, self.axes.index("ty")] if "ty" in self.axes else np.zeros(k, np.int64)
-        else:
+        if not self.gather:
             poses6 = full_poses(poses, self.axes)
         for q, i in enumerate(rows):
             # write straight into the block's columns of this row
             buf = a[:, q * n:(q + 1) * n] if len(rows) > 1 else a
             if self.gather:
-                v = _gather_row(self.stack, slot, shift_y, shift_x, int(i + self.margin), self.margin, buf)
+                slot, shift_y, shift_x, y = self.gather_args(i, index, poses)
+                v = _gather_row(self.stack, slot, shift_y, shift_x, y, self.margin, buf)
             else:
                 v = _build_row(self.ref, float(i + self.dy), float(self.dx), poses6, self.focal, self.cx, self.cy, buf)
             valid[q * n:(q + 1) * n] = (v != 0) & self.dist_valid[i]
@@ -488,8 +509,9 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
         ref[~np.asarray(reference_valid, bool)] = np.nan
     dist = np.asarray(distorted, dtype=np.float32)
     dvalid = np.ones(dist.shape, bool) if distorted_valid is None else np.asarray(distorted_valid, bool)
+    row_pad = int(np.ceil(3 * max([params.half_width[d] for d, a in enumerate(params.axes) if a == "ty"] + [0])))
     problem = _RowProblem(ref, dist, dvalid, camera, reference_origin_yx, distorted_origin_yx, params.axes,
-                          params.step, _shift_margin(params, prior))
+                          params.step, _shift_margin(params, prior), row_pad + 4)
     solver = _Solver(problem, params)
     t0 = time.perf_counter()
     height, width = dist.shape
@@ -675,23 +697,19 @@ class _Propagation:
     def _fast_row(self, i, center, w0):
         """The whole row in one compiled call (gathered F_i, fast solver)."""
         solver, space, problem, out = self.solver, self.space, self.solver.problem, self.out
-        key = tuple(center)
-        if self._grid_key != key:
+        band_key = (tuple(center), problem.band_of(i, int(center[problem.ty] * self.step[problem.ty])
+                                                   if problem.ty is not None else 0)[0])
+        if self._grid_key != band_key:
             index = center[None, :] + space.offsets()
-            poses = space.lattice_poses(index)
-            slot = problem._slots_of(index)
-            shift = np.rint(poses).astype(np.int64)
-            axes = problem.axes
-            zeros = np.zeros(len(index), np.int64)
-            self._grid = (slot, shift[:, axes.index("ty")] if "ty" in axes else zeros,
-                          shift[:, axes.index("tx")] if "tx" in axes else zeros)
-            self._grid_key = key
+            self._grid = problem.gather_args(i, index, space.lattice_poses(index))[:3]
+            self._grid_key = band_key
         slot, shift_y, shift_x = self._grid
+        y = problem.band_of(i, int(shift_y[len(shift_y) // 2]))[1]
         w = np.zeros(self.size) if w0 is None else w0
         if self._a is None:
             self._a = np.empty((self.size, problem.width), dtype=np.float32)
         p = solver.params
-        objective, count = _row_step(problem.stack, slot, shift_y, shift_x, int(i + problem.margin), problem.margin,
+        objective, count = _row_step(problem.stack, slot, shift_y, shift_x, int(y), problem.margin,
                                      problem.dist[i], problem.dist_valid[i], w, p.lambda_w, solver.delta, p.tol,
                                      p.max_outer, p.max_add, solver.min_valid(problem.width), self._a,
                                      out.registered[i], out.chi[i], out.valid[i])
