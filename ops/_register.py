@@ -19,7 +19,7 @@ from ._camera import POSE_AXES, Camera, full_poses
 from ._errors import ParameterError
 from ._oracle import solve_row_exact
 from ._posespace import PoseSpace
-from ._rowsolve import _build_row, _gather_row, _remap_rows, _row_step, _solve_huber_nn, _synthesize
+from ._rowsolve import _build_row, _gather_row, _propagate_rows, _remap_rows, _row_step, _solve_huber_nn, _synthesize
 
 __all__ = ["RegistrationParams", "Registration", "register"]
 
@@ -676,6 +676,7 @@ class _Propagation:
         self.counts, self.size = space.counts, space.size
         self.step = np.asarray(space.step)
         self.offsets_step = space.offsets() * self.step
+        self._arrays = None
 
     def solve_row(self, i, c, neighbour):
         space = self.space
@@ -722,6 +723,11 @@ class _Propagation:
         c_start = self.solve_row(start, center, None)
         out.trajectory[start] = center if c_start is None else c_start
         out.row_state[start] = 1
+        if self.solver.fast_rows and len(self.solver.problem.other) <= 1:
+            for direction in (-1, 1):
+                rows = np.arange(start + direction, height if direction > 0 else -1, direction)
+                self._compiled(rows, start, informative)
+            return
         for direction in (-1, 1):
             c_prev, prev = out.trajectory[start], start
             for i in range(start + direction, height if direction > 0 else -1, direction):
@@ -735,6 +741,61 @@ class _Propagation:
                 out.trajectory[i] = c
                 out.row_state[i] = 1
                 c_prev, prev = c, i
+
+    def _compiled(self, rows, start, informative):
+        """:func:`from_row`'s loop in compiled code (:func:`_propagate_rows`),
+        returning to Python only to pre-warp a rotation band it needs."""
+        solver, problem, out, space = self.solver, self.solver.problem, self.out, self.space
+        height, k = len(informative), self.size
+        if self._arrays is None:
+            reach = problem.margin + problem.pad
+            other = problem.other[0] if problem.other else -1
+            span = int(np.ceil(solver.params.search[other] / self.step[other])) + 4 * max(self.counts) if other >= 0 else 0
+            band_lo = (problem.margin - reach) // problem.BAND - 1
+            band_hi = (height + problem.margin + reach) // problem.BAND + 1
+            self._arrays = dict(table=np.full((2 * span + 1, band_hi - band_lo + 1), -1, np.int64), other_lo=-span,
+                                band_lo=band_lo, weights=np.zeros((height, k)), centers=np.zeros((height, len(self.step)),
+                                                                                                  np.int64),
+                                other=other, offsets=np.ascontiguousarray(space.offsets()),
+                                counts=np.asarray(self.counts, np.int64))
+            if self._a is None:
+                self._a = np.empty((k, problem.width), dtype=np.float32)
+        arr = self._arrays
+        p = solver.params
+        prev = start
+        pos = 0
+        while pos < len(rows):
+            center_prev, w_prev = self.weights[prev]
+            reached, other_index, band, status = _propagate_rows(
+                problem.stack if problem.stack is not None else np.empty((1, 1, 1), np.float32), arr["table"],
+                arr["other_lo"], arr["band_lo"], problem.BAND, problem.pad, problem.margin, rows[pos:],
+                out.trajectory[prev].astype(np.float64), prev, center_prev, w_prev, informative, problem.dist,
+                problem.dist_valid, arr["offsets"], arr["counts"], self.step,
+                problem.ty if problem.ty is not None else -1, problem.tx if problem.tx is not None else -1,
+                arr["other"], p.lambda_w, solver.delta, p.tol, p.max_outer, p.max_add, solver.min_valid(problem.width),
+                self._a, out.registered, out.chi, out.valid, out.trajectory, out.row_state, out.row_gain,
+                arr["weights"], arr["centers"])
+            for i in rows[pos:pos + reached]:
+                if out.row_state[i] != 2:
+                    self.weights[i] = (arr["centers"][i].copy(), arr["weights"][i].copy())
+                if out.row_state[i] == 1:
+                    prev = i
+            pos += reached
+            if status == 1:
+                index = np.zeros(len(self.step), np.int64)
+                if arr["other"] >= 0:
+                    index[arr["other"]] = other_index
+                key = (other_index,) if arr["other"] >= 0 else ()
+                arr["table"][other_index - arr["other_lo"], band - arr["band_lo"]] = problem._slot(key, index, band)
+            elif status == 2:
+                # outside the table: this row the Python way, then carry on
+                i = rows[pos]
+                c = self.solve_row(i, out.trajectory[prev], prev)
+                if c is None or not out.valid[i].any():
+                    out.row_state[i] = 3
+                else:
+                    out.trajectory[i], out.row_state[i], prev = c, 1, i
+                pos += 1
 
     def finish(self):
         """Interpolate the centroids of rows not solved on their own, then solve

@@ -595,3 +595,92 @@ def _row_step(stack, slot, shift_y, shift_x, y, x0, g_row, g_valid, w, lam, delt
             reg_out[j] = np.nan
             chi_out[j] = 0.0
     return obj, count
+
+
+@numba.njit(**_SUMS)
+def _propagate_rows(stack, table, other_lo, band_lo, band, pad, margin, rows, c_prev, prev, prev_center, w_prev,
+                    informative, dist, dist_valid, offsets, counts, step, ty_dim, tx_dim, other_dim, lam, delta, tol,
+                    max_outer, max_add, min_valid, a, registered, chi, valid, trajectory, row_state, row_gain,
+                    weights, centers):
+    """Propagate the trajectory along ``rows`` (in order) from a solved row, all
+    in compiled code: per row, the grid ``N(c_prev, b, s)``, its pre-warped
+    images (``table[other index - other_lo, band - band_lo]``, -1 if missing),
+    a warm start shifted from the previous row, :func:`_row_step`, the centroid.
+
+    Returns (position reached in ``rows``, other-axis lattice index, band,
+    status): status 0 done, 1 a pre-warped image is missing (make it and call
+    again from that position), 2 the grid left the table (solve that row
+    another way).
+    """
+    k_count, dims = offsets.shape
+    w = np.empty(k_count)
+    slot = np.empty(k_count, np.int64)
+    sy = np.zeros(k_count, np.int64)
+    sx = np.zeros(k_count, np.int64)
+    center = np.empty(dims, np.int64)
+    c_prev = c_prev.copy()
+    prev_center = prev_center.copy()
+    w_prev = w_prev.copy()
+    stride = np.ones(dims, np.int64)
+    for d in range(dims - 2, -1, -1):
+        stride[d] = stride[d + 1] * counts[d + 1]
+    for pos in range(rows.shape[0]):
+        i = rows[pos]
+        if not informative[i]:
+            row_state[i] = 2
+            continue
+        for d in range(dims):
+            center[d] = np.int64(np.round(c_prev[d] / step[d]))
+        cy = np.int64(np.round(center[ty_dim] * step[ty_dim])) if ty_dim >= 0 else 0
+        bnd = (i + margin - cy) // band
+        y = i + margin - (bnd * band - pad)
+        b = bnd - band_lo
+        for k in range(k_count):
+            if ty_dim >= 0:
+                sy[k] = np.int64(np.round((center[ty_dim] + offsets[k, ty_dim]) * step[ty_dim]))
+            if tx_dim >= 0:
+                sx[k] = np.int64(np.round((center[tx_dim] + offsets[k, tx_dim]) * step[tx_dim]))
+            o = center[other_dim] + offsets[k, other_dim] - other_lo if other_dim >= 0 else 0
+            if o < 0 or o >= table.shape[0] or b < 0 or b >= table.shape[1]:
+                return pos, o + other_lo, bnd, 2
+            if table[o, b] < 0:
+                return pos, o + other_lo, bnd, 1
+            slot[k] = table[o, b]
+        # warm start: new[o] = old[o + (center - prev_center)]
+        for k in range(k_count):
+            w[k] = 0.0
+        if prev >= 0:
+            for k in range(k_count):
+                src = 0
+                inside = True
+                for d in range(dims):
+                    m = offsets[k, d] + counts[d] // 2 + center[d] - prev_center[d]
+                    if m < 0 or m >= counts[d]:
+                        inside = False
+                        break
+                    src += m * stride[d]
+                if inside:
+                    w[k] = w_prev[src]
+        _, count = _row_step(stack, slot, sy, sx, y, margin, dist[i], dist_valid[i], w, lam, delta, tol, max_outer,
+                             max_add, min_valid, a, registered[i], chi[i], valid[i])
+        total = 0.0
+        for k in range(k_count):
+            total += w[k]
+            weights[i, k] = w[k]
+        for d in range(dims):
+            centers[i, d] = center[d]
+        row_gain[i] = total
+        if total <= 0.0 or count == 0:
+            row_state[i] = 3
+            continue
+        for d in range(dims):
+            acc = 0.0
+            for k in range(k_count):
+                acc += w[k] * offsets[k, d]
+            c_prev[d] = (center[d] + acc / total) * step[d]
+            trajectory[i, d] = c_prev[d]
+        row_state[i] = 1
+        prev = i
+        prev_center[:] = center
+        w_prev[:] = w
+    return rows.shape[0], 0, 0, 0
