@@ -20,7 +20,7 @@ from ._changes import (
     label_components,
     score_histogram,
 )
-from ._errors import InputError, ParameterError, RSMBError
+from ._errors import InputError, ParameterError, RSMBError, SolverError
 from ._forward import CameraPath, RenderResult, render
 from ._metrics import ConfusionCounts, confusion, trajectory_rmse
 from ._oracle import ExactRowSolution, huber_objective, optimal_chi, row_objective, solve_row_exact
@@ -81,4 +81,5 @@ __all__ = [
     "RSMBError",
     "InputError",
     "ParameterError",
+    "SolverError",
 ]

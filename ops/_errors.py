@@ -4,7 +4,7 @@ Callers catch :class:`RSMBError` for anything raised on purpose by the project,
 or the builtin base (``ValueError``, ``OSError``) they already handle.
 """
 
-__all__ = ["RSMBError", "InputError", "ParameterError"]
+__all__ = ["RSMBError", "InputError", "ParameterError", "SolverError"]
 
 
 class RSMBError(Exception):
@@ -21,3 +21,8 @@ class InputError(RSMBError, ValueError):
 class ParameterError(RSMBError, ValueError):
     """A parameter has a value outside what is allowed; the message names the
     parameter, what was expected and what was given."""
+
+
+class SolverError(RSMBError, RuntimeError):
+    """A numerical solver did not reach an optimal solution (the message gives
+    the solver and its status)."""

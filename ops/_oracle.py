@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ops._errors import InputError, ParameterError
+from ops._errors import InputError, ParameterError, SolverError
 
 __all__ = [
     "ExactRowSolution",
@@ -299,10 +299,10 @@ def solve_row_exact(
     try:
         problem.solve(solver=solver, **solver_options)
     except cp.error.SolverError as exc:
-        raise ParameterError(f"solver: {solver!r} failed on this problem: {exc}") from exc
+        raise SolverError(f"solver: {solver!r} failed on this problem: {exc}") from exc
     seconds = time.perf_counter() - t0
     if problem.status != cp.OPTIMAL:
-        raise ParameterError(
+        raise SolverError(
             f"solver: expected status 'optimal' from {solver!r}, got {problem.status!r} "
             f"(F {F.shape}, lambda_w={lw}, lambda_chi={lc})"
         )

@@ -1,7 +1,8 @@
 """Turning a change score (e.g. ``|chi|``, METHOD.md section 3 step 4) into a clean mask.
 
 - :func:`kapur_threshold`: Kapur, Sahoo & Wong (1985) maximum-entropy histogram threshold,
-  the threshold the paper applies to ``|chi|``.
+  the threshold the paper applies to ``|chi|``; :func:`kapur_threshold_histogram`
+  does the same from a ready histogram (e.g. one summed over tiles).
 - :func:`clean_mask`: drop connected components (and fill holes) below a minimum area.
 - :func:`hysteresis_mask`: two-level threshold keeping weak pixels connected to strong ones.
 """
@@ -16,7 +17,7 @@ from skimage.morphology import remove_small_holes, remove_small_objects
 
 from ops._errors import InputError, ParameterError
 
-__all__ = ["kapur_threshold", "clean_mask", "hysteresis_mask"]
+__all__ = ["kapur_threshold", "kapur_threshold_histogram", "clean_mask", "hysteresis_mask"]
 
 
 def _xlogx(p: np.ndarray) -> np.ndarray:
@@ -130,27 +131,52 @@ def kapur_threshold(values, *, bins: int = 256, value_range=None) -> float:
 def kapur_threshold_histogram(hist, edges) -> float:
     """:func:`kapur_threshold` of an already binned histogram.
 
+    Same criterion as :func:`kapur_threshold`, for histograms built elsewhere, e.g.
+    summed over tiles so that every tile gets the threshold of the whole image.
+
     Parameters
     ----------
-    hist : ndarray, shape (B,)
-        Counts (for example summed over the tiles of a mosaic).
-    edges : ndarray, shape (B + 1,)
-        Bin edges in value units.
+    hist : array_like of non-negative numbers, shape (B,)
+        Counts, B >= 2 (for example summed over the tiles of a mosaic).
+    edges : array_like, shape (B + 1,)
+        Strictly increasing bin edges, in value units.
 
     Returns
     -------
     float
-        A bin edge, or ``+inf`` when no split leaves two non-empty classes.
+        Threshold in the units of ``edges``: values above it are the high class. A bin
+        edge, or the middle of a plateau of optimal edges (empty bins between the
+        classes). ``+inf`` ("nothing above") for an empty histogram or when no split
+        leaves two non-empty classes (all mass in one bin).
+
+    Raises
+    ------
+    ParameterError
+        If the shapes disagree, ``hist`` has negative or non-finite counts, or
+        ``edges`` is not strictly increasing.
     """
-    hist = np.asarray(hist, dtype=np.float64)
-    if hist.sum() <= 0:
+    counts = np.asarray(hist, dtype=np.float64)
+    e = np.asarray(edges, dtype=np.float64)
+    if counts.ndim != 1 or counts.size < 2:
+        raise ParameterError(
+            f"hist: expected a 1-D histogram of >= 2 bins, got shape {counts.shape}"
+        )
+    if e.shape != (counts.size + 1,):
+        raise ParameterError(
+            f"edges: expected shape ({counts.size + 1},) for {counts.size} bins, got {e.shape}"
+        )
+    if not np.all(np.isfinite(counts)) or np.any(counts < 0):
+        raise ParameterError("hist: expected finite, non-negative counts")
+    if not (np.all(np.isfinite(e)) and np.all(np.diff(e) > 0)):
+        raise ParameterError("edges: expected finite, strictly increasing bin edges")
+    if counts.sum() <= 0:
         return math.inf
-    total = _kapur_entropy(hist)
+    total = _kapur_entropy(counts)
     if not np.any(np.isfinite(total)):
         # every value falls in one bin: no split has two non-empty classes
         return math.inf
     first, last = _plateau_centre(total)
-    return float(0.5 * (edges[first + 1] + edges[last + 1]))
+    return float(0.5 * (e[first + 1] + e[last + 1]))
 
 
 def _check_min_area(min_area) -> int:

@@ -31,11 +31,12 @@ import numpy as np
 import tiles
 from ops import InputError, ParameterError
 
-__all__ = ["DEFAULT_MAX_PIXELS", "FIGURES", "write_report"]
+__all__ = ["DEFAULT_MAX_PIXELS", "FIGURES", "block_reduce", "downsample_factor", "overlay_rgb", "write_report"]
 
 log = logging.getLogger("rsmb")
 
 DEFAULT_MAX_PIXELS = 2048 * 2048
+_SCORE_PIXELS = 1024 * 1024  # the score figure shows about this many pixels; more would only be resampled
 FIGURES = ("overlay.png", "trajectory.png", "gain.png", "agreement.png", "change_score.png")
 _REQUIRED = ("change_mask", "change_score", "registered", "trajectory", "gain")
 _STATES = {1: "solved", 2: "homogeneous", 3: "failed"}
@@ -63,8 +64,9 @@ def write_report(store, out_dir=None, *, max_pixels=DEFAULT_MAX_PIXELS, overwrit
         Directory to write ``index.html`` and the PNGs into; default
         ``<store>.report`` next to the store.
     max_pixels : int
-        Most pixels of a downsampled mosaic (``overlay.png`` holds at most this
-        many; the score image is reduced to it before plotting).
+        Most pixels of a downsampled mosaic: ``overlay.png`` holds at most this
+        many; the score figure shows at most this many (and at most 1024 x 1024,
+        which is what its axes can display).
     overwrite : bool
         Write into an existing non-empty directory, replacing the report files.
 
@@ -99,8 +101,9 @@ def write_report(store, out_dir=None, *, max_pixels=DEFAULT_MAX_PIXELS, overwrit
     figures["gain.png"] = _write_gain(group, attrs, out / "gain.png")
     if "tile_agreement" in group:
         figures["agreement.png"] = _write_agreement(group, attrs, out / "agreement.png")
-    figures["change_score.png"] = _write_score(group, attrs, factor, out / "change_score.png")
-    page = _html_page(store, attrs, group, figures, factor)
+    score_factor = max(factor, downsample_factor(shape, _SCORE_PIXELS))
+    figures["change_score.png"] = _write_score(group, attrs, score_factor, out / "change_score.png")
+    page = _html_page(store, attrs, group, figures, factor, score_factor)
     index = out / "index.html"
     index.write_text(page, encoding="utf-8")
     return index
@@ -202,7 +205,8 @@ def overlay_rgb(gray, mask, row_lines=(), col_lines=()):
     gray : ndarray, shape (h, w)
         Image, any range; NaN where unknown (drawn dark blue).
     mask : ndarray, shape (h, w)
-        Nonzero where changed: filled red, outlined yellow.
+        Nonzero where changed: filled red, outlined yellow; components of a
+        few pixels also get a yellow ring.
     row_lines, col_lines : sequence of int
         Rows and columns of the faint tile grid.
 
@@ -214,8 +218,9 @@ def overlay_rgb(gray, mask, row_lines=(), col_lines=()):
 
     finite = np.isfinite(gray)
     lo, hi = np.percentile(gray[finite], [0.5, 99.5]) if finite.any() else (0.0, 1.0)
-    g = np.clip((np.where(finite, gray, lo) - lo) / max(float(hi - lo), 1e-6), 0.0, 1.0)
+    g = np.clip((np.where(finite, gray, lo) - lo) / max(float(hi - lo), 1e-6), 0.0, 1.0).astype(np.float32)
     rgb = np.repeat(g[..., None], 3, axis=-1)
+    del g
     rgb[~finite] = _NAN_RGB
     rows, cols = list(row_lines), list(col_lines)
     rgb[rows, :] = (1 - _GRID_ALPHA) * rgb[rows, :] + _GRID_ALPHA * _GRID_RGB
@@ -223,7 +228,24 @@ def overlay_rgb(gray, mask, row_lines=(), col_lines=()):
     changed = np.asarray(mask) > 0
     rgb[changed] = (1 - _MASK_ALPHA) * rgb[changed] + _MASK_ALPHA * _MASK_RGB
     rgb[changed & ~ndimage.binary_erosion(changed, border_value=0)] = _EDGE_RGB
+    rgb[_rings(changed)] = _EDGE_RGB
     return (rgb * 255.0 + 0.5).astype(np.uint8)
+
+
+def _rings(changed, small=4):
+    """A ring around every component of at most ``small`` pixels, which would
+    otherwise be a dot in a downsampled overlay."""
+    from scipy import ndimage
+
+    labels, count = ndimage.label(changed)
+    if count == 0:
+        return np.zeros_like(changed)
+    area = np.bincount(labels.ravel(), minlength=count + 1)
+    tiny = (area <= small)[labels] & changed
+    if not tiny.any():
+        return np.zeros_like(changed)
+    inner = ndimage.binary_dilation(tiny, iterations=2)
+    return ndimage.binary_dilation(inner) & ~inner & ~changed
 
 
 def _write_overlay(group, grid, factor, path):
@@ -269,7 +291,8 @@ def _write_trajectory(group, attrs, path):
     colors = _tile_colors(0 if per_tile is None else per_tile.shape[1])
     for d, ax in enumerate(panels):
         for tx in range(0 if per_tile is None else per_tile.shape[1]):
-            ax.plot(rows, per_tile[:, tx, d], color=colors[tx], lw=0.8, alpha=0.85, label=f"tile column {tx}")
+            ax.plot(rows, per_tile[:, tx, d], color=colors[tx], lw=0.8, alpha=0.85 if len(colors) <= 10 else 0.5,
+                    label=f"tile column {tx}")
         ax.plot(rows, traj[:, d], color="black", lw=1.6, label="fused")
         for e in edges:
             ax.axvline(e, color="0.45", lw=0.8, ls="--")
@@ -280,7 +303,7 @@ def _write_trajectory(group, attrs, path):
         ax.margins(x=0)
     panels[-1].set_xlabel("row (px); dashed: tile-row boundaries")
     _trajectory_legend(fig, panels[0], per_tile)
-    fig.suptitle("Per-row camera pose (centroid)")
+    panels[0].set_title("Per-row camera pose (centroid)")
     return _save(fig, path)
 
 
@@ -293,11 +316,10 @@ def _tile_colors(n):
 
 def _trajectory_legend(fig, ax, per_tile):
     handles, labels = ax.get_legend_handles_labels()
+    handles, labels = handles[-1:] + handles[:-1], labels[-1:] + labels[:-1]  # fused first
     if per_tile is not None and per_tile.shape[1] > 8:  # one entry for all tile columns
-        handles, labels = [handles[0], handles[-1]], [f"tile columns 0..{per_tile.shape[1] - 1}", "fused"]
-    else:
-        handles, labels = handles[::-1], labels[::-1]
-    ax.legend(handles, labels, loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8, frameon=False)
+        handles, labels = handles[:2], ["fused", f"tile columns 0..{per_tile.shape[1] - 1}"]
+    fig.legend(handles, labels, loc="outside upper center", ncol=len(handles), fontsize=9, frameon=False)
 
 
 def _tile_map(values, *, title, label, fmt, cmap, vmin=None, vmax=None, marked=(), marked_label=None,
@@ -305,23 +327,24 @@ def _tile_map(values, *, title, label, fmt, cmap, vmin=None, vmax=None, marked=(
     """Figure of a (tiles_y, tiles_x) map with its values written in the cells."""
     from matplotlib import colormaps
     from matplotlib.patches import Patch, Rectangle
+    from matplotlib.ticker import ScalarFormatter
 
     ny, nx = values.shape
-    fig = _figure((min(11.0, max(4.5, 0.95 * nx + 2.4)), min(10.0, max(3.2, 0.8 * ny + 1.4))))
+    fig = _figure((min(11.0, max(6.4, 0.95 * nx + 2.6)), min(10.0, max(3.6, 0.8 * ny + 1.8))))
     ax = fig.subplots()
     image = ax.imshow(np.ma.masked_invalid(values), cmap=colormaps[cmap].with_extremes(bad="0.85"),
                       vmin=vmin, vmax=vmax, interpolation="nearest", aspect="auto")
-    bar = fig.colorbar(image, ax=ax, label=label)
+    bar = fig.colorbar(image, ax=ax, label=label if line is None else f"{label}; line: {line[1]}")
+    bar.formatter = ScalarFormatter(useOffset=False)
+    bar.update_ticks()
     if line is not None:
-        bar.ax.axhline(line[0], color="black", lw=1.5)
-        bar.ax.text(1.05, line[0], f" {line[1]}", transform=bar.ax.get_yaxis_transform(), fontsize=7,
-                    va="center", clip_on=False)
+        bar.ax.axhline(line[0], color="black", lw=2)
     _annotate_cells(ax, image, values, fmt)
     for ty, tx in marked:
         ax.add_patch(Rectangle((tx - 0.47, ty - 0.47), 0.94, 0.94, fill=False, ec="red", lw=2.5, ls="--"))
     if marked and marked_label:
-        ax.legend([Patch(fill=False, ec="red", lw=2, ls="--")], [marked_label], loc="upper left",
-                  bbox_to_anchor=(0.0, -0.12 if ny < 6 else -0.06), fontsize=8, frameon=False)
+        fig.legend([Patch(fill=False, ec="red", lw=2, ls="--")], [marked_label], loc="outside lower center",
+                   fontsize=9, frameon=False)
     ax.set_xticks(_ticks(nx))
     ax.set_yticks(_ticks(ny))
     ax.set_xlabel("tile column (tile_x)")
@@ -352,7 +375,7 @@ def _annotate_cells(ax, image, values, fmt):
 
 def _write_gain(group, attrs, path):
     gain = np.asarray(group["gain"][:], dtype=np.float64)
-    fig = _tile_map(gain, title="Illumination gain per tile (capture / reference)", label="gain",
+    fig = _tile_map(gain, title="Illumination gain per tile", label="gain (capture / reference)",
                     fmt=".4f", cmap="cividis")
     return _save(fig, path)
 
@@ -364,29 +387,37 @@ def _write_agreement(group, attrs, path):
     tolerance = (attrs.get("parameters") or {}).get("agreement")
     finite = agree[np.isfinite(agree)]
     top = max([float(finite.max()) if finite.size else 0.0] + ([1.2 * tolerance] if tolerance else []))
-    fig = _tile_map(agree, title="Tile path vs fused path (RMS displacement at row ends)", label="disagreement (px)",
+    fig = _tile_map(agree, title="Tile path vs fused path", label="disagreement (px)",
                     fmt=".2f", cmap="magma_r", vmin=0.0, vmax=max(top, 1e-3), marked=resolved,
                     marked_label="re-solved around the other tiles' path",
-                    line=(tolerance, "tolerance") if tolerance else None)
+                    line=(tolerance, f"tolerance {tolerance:g} px") if tolerance else None)
     return _save(fig, path)
+
+
+def _score_vmax(score, threshold):
+    """Top of the colour scale: the 99th percentile of the scores above the
+    threshold (changes are sparse, a plain percentile would be zero), at least
+    twice the threshold."""
+    finite = score[np.isfinite(score)]
+    floor = 2.0 * threshold if threshold else 0.0
+    above = finite[finite > (threshold or 0.0)]
+    top = float(np.percentile(above, 99.0)) if above.size else (float(finite.max()) if finite.size else 1.0)
+    return max(top, floor, 1e-6)
 
 
 def _write_score(group, attrs, factor, path):
     score = block_reduce(group["change_score"], factor, "max")
     threshold = (attrs.get("summary") or {}).get("threshold")
     h, w = score.shape
-    finite = score[np.isfinite(score)]
-    vmax = float(np.percentile(finite, 99.9)) if finite.size else 1.0
-    vmax = max(vmax, 2.0 * threshold if threshold else 0.0, 1e-6)
-    fig = _figure((9.0, min(12.0, max(3.0, 7.6 * h / w + 0.9))))
+    vmax = _score_vmax(score, threshold)
+    fig = _figure((11.0, min(14.0, max(3.0, 9.4 * h / w + 0.9))))
     ax = fig.subplots()
     image = ax.imshow(score, cmap="inferno", vmin=0.0, vmax=vmax, interpolation="nearest",
                       extent=(-0.5, w * factor - 0.5, h * factor - 0.5, -0.5))
-    bar = fig.colorbar(image, ax=ax, label="change score (intensity units)", extend="max")
+    label = "change score (intensity units)" + ("; cyan line: threshold" if threshold is not None else "")
+    bar = fig.colorbar(image, ax=ax, label=label, extend="max")
     if threshold is not None:
         bar.ax.axhline(threshold, color="cyan", lw=2)
-        bar.ax.text(1.05, threshold, " threshold", transform=bar.ax.get_yaxis_transform(), fontsize=7,
-                    va="center", color="black", clip_on=False)
     ax.set_xlabel("column (px)")
     ax.set_ylabel("row (px)")
     ax.set_title("Change score" + (f" (block maximum of {factor} x {factor} px)" if factor > 1 else ""))
@@ -439,7 +470,7 @@ def _fmt(value):
     if isinstance(value, bool):
         return "yes" if value else "no"
     if isinstance(value, float):
-        return _esc(f"{value:.4g}") if value == value else "NaN"
+        return _esc(f"{value:.6g}") if value == value else "NaN"
     if isinstance(value, list) and value and all(isinstance(v, list) for v in value):
         return _esc(", ".join("(" + ", ".join(str(x) for x in v) + ")" for v in value))
     if isinstance(value, list):
@@ -503,7 +534,7 @@ def _row_state_table(group):
     return "<h3>Rows per tile column by solver state</h3>" + _table(rows, header, numeric=(1, 2, 3, 4))
 
 
-def _geo_section(attrs):
+def _geo_rows(attrs, prefix=""):
     keys = [k for k in attrs if k.startswith(("proj:", "spatial:")) or k in ("crs", "transform", "nodata")]
     rows = []
     for key in keys:
@@ -512,35 +543,43 @@ def _geo_section(attrs):
             text = f"<details><summary>{_esc(value[:60])}&hellip;</summary><pre>{_esc(value)}</pre></details>"
         else:
             text = _fmt(value)
-        rows.append([f"<code>{_esc(key)}</code>", text])
-    if not any(k != "nodata" and attrs[k] is not None for k in keys):
+        rows.append((key, value, [f"<code>{_esc(prefix + key)}</code>", text]))
+    return rows
+
+
+def _geo_section(attrs):
+    rows = _geo_rows(attrs) + _geo_rows(attrs.get("reference_georeferencing") or {}, "reference ")
+    if not any(key != "nodata" and value is not None for key, value, _ in rows):
         return "<h2>Georeferencing</h2><p>The capture had no georeferencing (pixel coordinates only).</p>"
-    return "<h2>Georeferencing</h2>" + _table(rows, ["attribute", "value"])
+    return "<h2>Georeferencing</h2>" + _table([cells for _, _, cells in rows], ["attribute", "value"])
 
 
-def _captions(attrs, factor, figures):
+def _captions(attrs, factor, score_factor):
     s = attrs.get("summary") or {}
-    g = attrs["tile_grid"]
+    tile = attrs["tile_grid"]["tile"]
     tol = (attrs.get("parameters") or {}).get("agreement")
     down = (f"Downsampled by {factor} (block mean of the image, block maximum of the mask, so that small changes "
             f"stay visible)." if factor > 1 else "Full resolution, one image pixel per PNG pixel.")
+    overlay = (f"Detected changes (red fill, yellow outline, a ring around tiny ones; {s.get('changed_pixels', '?')} "
+               f"px in {s.get('components', '?')} component(s)) on the registered reference, i.e. the reference "
+               f"warped and blurred to match the capture (grayscale; dark blue where unknown). Faint cyan lines: "
+               f"the {tile} px tile grid. {down}")
+    agreement = ("How far each tile's path is from the fused one: RMS over rows of the largest displacement of the "
+                 "row ends, px." + (f" Tolerance {tol:g} px (black line on the colorbar)." if tol else "")
+                 + f" Dashed red outlines: tiles re-solved around the other tiles' path "
+                   f"({len(s.get('resolved_tiles', []))}).")
+    score = ("Magnitude of the change term."
+             + (f" Threshold {s['threshold']:.4g} (cyan line on the colorbar)." if "threshold" in s else "")
+             + (f" Block maximum over {score_factor} x {score_factor} px, so that small changes stay visible."
+                if score_factor > 1 else ""))
     return {
-        "overlay.png": f"Detected changes (red fill, yellow outline; {s.get('changed_pixels', '?')} px in "
-                       f"{s.get('components', '?')} component(s)) on the registered reference, i.e. the reference "
-                       f"warped and blurred to match the capture (grayscale; dark blue where unknown). Faint cyan "
-                       f"lines: the {g['tile']} px tile grid. {down}",
+        "overlay.png": overlay,
         "trajectory.png": "Per-row camera pose in global pose coordinates, one panel per axis. Black: the fused "
                           "trajectory (median over tiles of solved rows); thin coloured lines: each tile column's "
                           "own estimate; dashed verticals: tile-row boundaries.",
         "gain.png": "Illumination gain of the capture against the reference, one value per tile.",
-        "agreement.png": "How far each tile's path is from the fused one: RMS over rows of the largest displacement "
-                         "of the row ends, px." + (f" Tolerance {tol:g} px (black line on the colorbar)." if tol
-                                                    else "") +
-                         f" Dashed red outlines: tiles re-solved around the other tiles' path "
-                         f"({len(s.get('resolved_tiles', []))}).",
-        "change_score.png": "Magnitude of the change term." + (f" Threshold {s['threshold']:.4g} marked on the "
-                                                               f"colorbar." if "threshold" in s else "") +
-                            (f" Block maximum over {factor} x {factor} px." if factor > 1 else ""),
+        "agreement.png": agreement,
+        "change_score.png": score,
     }
 
 
@@ -558,7 +597,7 @@ def _figures_html(figures, captions):
     return "\n".join(parts)
 
 
-def _html_page(store, attrs, group, figures, factor):
+def _html_page(store, attrs, group, figures, factor, score_factor):
     summary = attrs.get("summary") or {}
     params = attrs.get("parameters") or {}
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -569,7 +608,7 @@ def _html_page(store, attrs, group, figures, factor):
         f"<h1>rsmb report: {_esc(store.name)}</h1>", f'<p class="meta">{meta}</p>',
         "<h2>Inputs</h2>", _inputs_table(attrs),
         "<h2>Summary</h2>", _summary_table(summary), _row_state_table(group),
-        "<h2>Figures</h2>", _figures_html(figures, _captions(attrs, factor, figures)),
+        "<h2>Figures</h2>", _figures_html(figures, _captions(attrs, factor, score_factor)),
         "<h2>Timings</h2>", _timings_table(summary.get("timings") or {}),
         "<h2>Parameters</h2>", _table(param_rows, ["parameter", "value"]),
         _geo_section(attrs),

@@ -255,6 +255,21 @@ def demo(out_dir, size, tile_size, scheduler, overwrite):
     click.echo(f"report: {result['report']}")
 
 
+@cli.command()
+@click.argument("store", type=click.Path(exists=False))
+@click.option("-o", "--out-dir", type=click.Path(file_okay=False), default=None,
+              help="Report directory. Default: STORE.report next to the store.")
+@click.option("--max-pixels", type=click.IntRange(min=1), default=2048 * 2048, show_default=True,
+              help="Most pixels of a downsampled mosaic figure (the overlay PNG holds at most this many).")
+@click.option("--overwrite", is_flag=True, help="Write into an existing non-empty report directory.")
+def report(store, out_dir, max_pixels, overwrite):
+    """An HTML page with figures of one detect STORE: change overlay, trajectory, gain, tile agreement, score."""
+    from ._report import write_report
+
+    index = write_report(store, out_dir, max_pixels=max_pixels, overwrite=overwrite)
+    click.echo(f"wrote {index}")
+
+
 @cli.command("run")
 @click.argument("workflow", type=click.Path(dir_okay=False))
 @click.option("--scheduler", default=None, help="Override the workflow's scheduler.")

@@ -1,0 +1,169 @@
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from ops._errors import InputError, ParameterError
+from ops._threshold import (
+    _kapur_entropy,
+    clean_mask,
+    hysteresis_mask,
+    kapur_threshold,
+    kapur_threshold_histogram,
+)
+
+
+def _kapur_bruteforce(hist):
+    """Loop-over-splits Kapur entropy, straight from the 1985 definition."""
+    p = hist / hist.sum()
+    out = np.full(len(p) - 1, -np.inf)
+    for t in range(len(p) - 1):
+        a, b = p[: t + 1], p[t + 1:]
+        pa, pb = a.sum(), b.sum()
+        if pa <= 0 or pb <= 1e-12:
+            continue
+        qa, qb = a[a > 0] / pa, b[b > 0] / pb
+        out[t] = -(qa * np.log(qa)).sum() - (qb * np.log(qb)).sum()
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_vectorised_entropy_matches_definition(seed):
+    rng = np.random.default_rng(seed)
+    hist = rng.integers(0, 50, 64).astype(float)
+    hist[rng.integers(0, 64, 10)] = 0  # empty bins
+    fast = _kapur_entropy(hist)
+    slow = _kapur_bruteforce(hist)
+    finite = np.isfinite(slow)
+    assert np.array_equal(np.isfinite(fast), finite)
+    np.testing.assert_allclose(fast[finite], slow[finite], rtol=1e-10, atol=1e-12)
+
+
+def test_kapur_separates_noise_from_changes():
+    """|chi|-like scores: a large near-zero population and a few large values."""
+    rng = np.random.default_rng(3)
+    background = np.abs(rng.normal(0.0, 0.02, 20000))
+    changes = rng.uniform(0.3, 0.6, 600)
+    t = kapur_threshold(np.concatenate([background, changes]))
+    assert background.max() < 0.3
+    assert 0.05 < t < 0.3
+    assert np.mean(changes > t) == 1.0
+    assert np.mean(background > t) < 0.005  # ~3 sigma of the noise
+
+
+def test_kapur_two_spikes_threshold_in_the_gap_middle():
+    values = np.r_[np.full(100, 0.1), np.full(50, 0.9)]
+    t = kapur_threshold(values, bins=100, value_range=(0.0, 1.0))
+    # optimum is a plateau over the empty bins: its middle, ~0.5
+    assert t == pytest.approx(0.5, abs=0.02)
+
+
+def test_kapur_histogram_equals_values_version_and_tiles_sum():
+    rng = np.random.default_rng(4)
+    v = np.concatenate([rng.gamma(2.0, 0.01, 5000), rng.uniform(0.2, 0.4, 300)])
+    edges = np.linspace(0.0, 0.5, 129)
+    hist = np.histogram(v, edges)[0]
+    assert kapur_threshold_histogram(hist, edges) == kapur_threshold(v, bins=128, value_range=(0.0, 0.5))
+    halves = np.histogram(v[:2000], edges)[0] + np.histogram(v[2000:], edges)[0]
+    assert kapur_threshold_histogram(halves, edges) == kapur_threshold_histogram(hist, edges)
+
+
+def test_kapur_value_range_clips_tail_into_last_bin():
+    rng = np.random.default_rng(5)
+    v = np.concatenate([np.abs(rng.normal(0, 0.02, 5000)), np.full(200, 5.0)])
+    t = kapur_threshold(v, value_range=(0.0, 1.0))
+    assert 0.0 < t < 1.0
+    assert np.all(v[-200:] > t)
+
+
+@pytest.mark.parametrize("values", [np.array([]), np.full(100, 0.3), np.array([np.nan, np.inf]),
+                                    np.array([0.2])])
+def test_kapur_degenerate_inputs_return_inf(values):
+    t = kapur_threshold(values)
+    assert t == math.inf
+    assert not np.any(values[np.isfinite(values)] > t)
+
+
+def test_kapur_degenerate_histograms():
+    edges = np.linspace(0, 1, 11)
+    assert kapur_threshold_histogram(np.zeros(10), edges) == math.inf
+    one = np.zeros(10)
+    one[3] = 7
+    assert kapur_threshold_histogram(one, edges) == math.inf
+    assert kapur_threshold(np.full(10, 0.3), value_range=(0.3, 0.3)) == math.inf
+
+
+def test_kapur_parameter_errors():
+    with pytest.raises(ParameterError, match="bins"):
+        kapur_threshold([0.1, 0.2], bins=1)
+    with pytest.raises(ParameterError, match="value_range"):
+        kapur_threshold([0.1, 0.2], value_range=(1.0, 0.0))
+    with pytest.raises(ParameterError, match="edges"):
+        kapur_threshold_histogram(np.ones(4), np.linspace(0, 1, 4))
+    with pytest.raises(ParameterError, match="hist"):
+        kapur_threshold_histogram(np.array([1.0, -1.0]), np.linspace(0, 1, 3))
+
+
+def _blobs():
+    m = np.zeros((40, 40), bool)
+    m[2:4, 2:4] = True  # 4 px: removed at min_area 5
+    m[10:20, 10:20] = True  # 100 px, with a 4 px hole
+    m[14:16, 14:16] = False
+    m[30:33, 30:32] = True  # 6 px
+    m[25, 25] = m[26, 26] = True  # diagonal pair: one 2 px object at 8-connectivity
+    return m
+
+
+def test_clean_mask_removes_small_components_and_fills_small_holes():
+    m = _blobs()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no skimage deprecation warning
+        out = clean_mask(m, min_area=5)
+    assert out.dtype == bool and out.shape == m.shape
+    assert not out[2:4, 2:4].any()
+    assert out[10:20, 10:20].all()  # hole of 4 px filled
+    assert out[30:33, 30:32].all()  # 6 px kept
+    assert not out[25, 25] and not out[26, 26]
+    assert m[14, 14] == False  # input untouched  # noqa: E712
+
+
+def test_clean_mask_area_boundary_and_options():
+    m = _blobs()
+    keep6 = clean_mask(m, min_area=6, fill_holes=False)
+    assert keep6[30:33, 30:32].all()  # exactly min_area: kept
+    assert not keep6[14:16, 14:16].any()  # hole not filled
+    assert not clean_mask(m, min_area=7)[30:33, 30:32].any()
+    # 4-connectivity: the diagonal pair is two 1-px objects
+    m2 = np.zeros((10, 10), bool)
+    m2[3, 3] = m2[4, 4] = True
+    assert clean_mask(m2, min_area=2, connectivity=2).sum() == 2
+    assert clean_mask(m2, min_area=2, connectivity=1).sum() == 0
+    assert np.array_equal(clean_mask(m, min_area=1), m)
+    assert np.array_equal(clean_mask(m, min_area=0, fill_holes=True), m)
+
+
+def test_clean_mask_errors():
+    with pytest.raises(ParameterError, match="min_area"):
+        clean_mask(np.zeros((4, 4), bool), min_area=-1)
+    with pytest.raises(ParameterError, match="connectivity"):
+        clean_mask(np.zeros((4, 4), bool), min_area=3, connectivity=3)
+    with pytest.raises(InputError, match="mask"):
+        clean_mask(np.full((4, 4), 2), min_area=3)
+    with pytest.raises(ParameterError, match="mask"):
+        clean_mask(np.zeros(4, bool), min_area=3)
+
+
+def test_hysteresis_keeps_weak_pixels_connected_to_strong():
+    score = np.zeros((20, 20))
+    score[5:10, 5:10] = 0.3  # weak blob ...
+    score[7, 7] = 0.9  # ... with a strong core: kept whole
+    score[15:18, 15:18] = 0.3  # weak blob alone: dropped
+    score[0, 19] = np.nan
+    out = hysteresis_mask(score, low=0.2, high=0.5)
+    assert out.dtype == bool
+    assert out[5:10, 5:10].all()
+    assert not out[15:18, 15:18].any()
+    assert out.sum() == 25
+    with pytest.raises(ParameterError, match="low"):
+        hysteresis_mask(score, low=0.6, high=0.5)
