@@ -351,7 +351,8 @@ def _coarse_search(problem, params, rows, count=4):
     """Candidate start poses of a band of rows, best first: for each in-plane
     rotation on a coarse grid, the two best translations by normalised
     cross-correlation of image gradients (invariant to gain, robust to changed
-    objects); the ``count`` best distinct ones are returned."""
+    objects).  Returns the ``count`` best distinct ones and, per axis, how far
+    the truth may lie from a candidate (half the coarse spacing)."""
     axes = params.axes
     search = dict(zip(axes, params.search))
     step = dict(zip(axes, params.step))
@@ -359,14 +360,15 @@ def _coarse_search(problem, params, rows, count=4):
     margin_y = int(np.ceil(search.get("ty", 0.0))) + 1
     r0, r1 = rows[0], rows[-1] + 1
     width = problem.width
+    uncertainty = np.where(np.isin(axes, ("tx", "ty")), 1.0, 0.0)
     if width - 2 * margin_x < 16:
-        return [np.zeros(len(axes))]
+        return [np.zeros(len(axes))], uncertainty
     pad = 4
     lo, hi = max(r0 - pad, 0), min(r1 + pad, problem.dist.shape[0])
     templates = [t[r0 - lo:t.shape[0] - (hi - r1), margin_x:width - margin_x].copy()
                  for t in _gradients(problem.dist[lo:hi])]
     if min(t.std() for t in templates) == 0:
-        return [np.zeros(len(axes))]
+        return [np.zeros(len(axes))], uncertainty
     rz_values = [0.0]
     if "rz" in axes and search["rz"] > 0:
         # candidates close enough that the translation search bridges them at
@@ -377,6 +379,7 @@ def _coarse_search(problem, params, rows, count=4):
         coarse = max(np.degrees(bridge), step["rz"])
         n = int(np.ceil(search["rz"] / coarse))
         rz_values = list(np.linspace(-search["rz"], search["rz"], 2 * n + 1))
+        uncertainty[axes.index("rz")] = search["rz"] / (2 * n) if n else 0.0
     band = np.arange(r0 - margin_y, r1 + margin_y)
     peaks = []
     buf = np.empty((1, width), dtype=np.float32)
@@ -399,7 +402,7 @@ def _coarse_search(problem, params, rows, count=4):
             out.append(pose)
         if len(out) == count:
             break
-    return out or [np.zeros(len(axes))]
+    return out or [np.zeros(len(axes))], uncertainty
 
 
 def _local_maxima(score, count, radius=3):
@@ -606,12 +609,14 @@ def _block_rows(informative, mid, count, height):
     return np.sort(rows[np.argsort(np.abs(rows - mid), kind="stable")][:count])
 
 
-def _refine_start(solver, center, rows):
-    """Joint solve of a block of rows around the coarse pose; returns the block's
-    centroid and the blur extent per axis."""
+def _refine_start(solver, center, rows, uncertainty):
+    """Joint solve of a block of rows around a coarse pose (a grid wide enough
+    for the coarse search's spacing); returns the block's centroid, the blur
+    extent per axis and the cost."""
     params = solver.params
     steps = np.asarray(params.step)
-    coarse_hw = np.maximum(np.asarray(params.half_width) + steps, 4 * steps)
+    coarse_hw = np.maximum(np.maximum(np.asarray(params.half_width) + steps, 4 * steps),
+                           np.ceil(np.asarray(uncertainty) / steps) * steps + 2 * steps)
     space = params.space.widened(tuple(coarse_hw))
     for _ in range(2):
         _, poses, w, _, _ = solver.solve(rows, space, center)
@@ -622,13 +627,15 @@ def _refine_start(solver, center, rows):
     return center, _spread(poses, w, center), solver.last_cost
 
 
-def _choose_start(solver, candidates, rows):
+def _choose_start(solver, start, rows):
     """The start pose among the correlation candidates whose block solve of
     eq. 13 costs least: correlation proposes, the model decides (periodic
-    textures such as ploughed fields give several correlation peaks)."""
+    textures such as ploughed fields give several correlation peaks).
+    ``start`` is (candidates, uncertainty per axis)."""
+    candidates, uncertainty = start
     best = None
     for center in candidates:
-        refined = _refine_start(solver, np.asarray(center, dtype=np.float64), rows)
+        refined = _refine_start(solver, np.asarray(center, dtype=np.float64), rows, uncertainty)
         if best is None or refined[2] < best[2]:
             best = refined
     return best[0], best[1]
