@@ -26,10 +26,11 @@ import cv2
 import numba
 import numpy as np
 from scipy import ndimage
+from skimage.morphology import remove_small_holes
 
 from ._camera import pose_homographies
 from ._errors import ParameterError
-from ._threshold import clean_mask, kapur_threshold_histogram
+from ._threshold import kapur_threshold_histogram
 
 __all__ = ["ChangeParams", "ScoreHistogram", "score_histogram", "change_threshold", "change_candidates",
            "label_components", "keep_components", "fill_holes", "change_mask", "changes_to_reference",
@@ -211,7 +212,9 @@ def keep_components(area, peak, threshold, *, params=ChangeParams()):
 
 def fill_holes(mask, *, params=ChangeParams()):
     """Fill holes smaller than ``min_area`` inside changes."""
-    return clean_mask(mask, min_area=params.min_area, fill_holes=True) | mask
+    if params.min_area <= 1 or not mask.any():
+        return mask.copy()
+    return remove_small_holes(mask, max_size=params.min_area - 1, connectivity=1)
 
 
 def change_mask(score, threshold, *, params=ChangeParams()):

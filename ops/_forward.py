@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._camera import POSE_AXES, Camera
+from ._camera import Camera
 from ._errors import ParameterError
 from ._rowsolve import _remap_rows
 

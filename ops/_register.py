@@ -10,12 +10,13 @@ solved afterwards around it.
 """
 
 import dataclasses
+import time
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from ._camera import POSE_AXES, Camera, full_poses
+from ._camera import Camera, full_poses
 from ._errors import ParameterError
 from ._oracle import solve_row_exact
 from ._posespace import PoseSpace
@@ -503,8 +504,6 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
     -------
     Registration
     """
-    import time
-
     camera = camera or Camera.for_shape(distorted.shape)
     params = (params or RegistrationParams()).resolved(camera)
     ref = np.array(reference, dtype=np.float32)
@@ -568,7 +567,6 @@ def _apply_gain_slope(out, dist, delta, iterations=8):
     out.registered = np.where(valid, out.registered * factor, out.registered).astype(np.float32)
     r = dist - out.registered
     out.chi = np.where(valid, np.sign(r) * np.maximum(np.abs(r) - delta, 0.0), 0.0).astype(np.float32)
-    out.gain_slope = b
 
 
 class _Outputs:

@@ -86,7 +86,7 @@ def _row_problems(data, count, width, seed):
 
 def bench_oracle(data, *, count=60, width=512, seed=0, lam=(1e-3, 0.02)):
     problems = _row_problems(data, count, width, seed)
-    worst, fast_t, exact_t, build_t = 0.0, [], [], []
+    worst, fast_t, exact_t = 0.0, [], []
     by_source = {}
     for name, F, g in problems:
         t = time.perf_counter()

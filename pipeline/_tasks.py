@@ -73,12 +73,15 @@ def label_task(store, tile, shape, threshold, change_params):
     candidates = ops.change_candidates(score, threshold, params=change_params)
     core = (slice(tile.core[0].start - r0, tile.core[0].stop - r0), slice(tile.core[1].start - c0, tile.core[1].stop - c0))
     labels, area, peak = ops.label_components(candidates[core], score[core])
-    group["work/labels"][tile.core] = labels
+    if len(area) > 1:  # unwritten chunks read as 0: a tile without candidates writes nothing
+        group["work/labels"][tile.core] = labels
     return TileLabels.from_labels(tile.index, labels, area, peak)
 
 
 def mask_task(store, tile, keep, change_params):
     """Stage 3: keep the labels of components that passed, fill small holes."""
+    if not keep.any():
+        return 0  # change_mask reads 0 where nothing was written
     group = _open(store)
     labels = group["work/labels"][tile.core]
     mask = ops.fill_holes(keep[labels], params=change_params)
@@ -93,6 +96,8 @@ def reference_mask_task(store, tile, shape, camera, axes, halo):
     r0, r1 = max(tile.core[0].start - halo, 0), min(tile.core[0].stop + halo, shape[0])
     c0, c1 = max(tile.core[1].start - halo, 0), min(tile.core[1].stop + halo, shape[1])
     mask = group["change_mask"][r0:r1, c0:c1]
+    if not mask.any():
+        return 0
     trajectory = group["trajectory"][r0:r1].astype(np.float64)
     ref = ops.changes_to_reference(mask, trajectory, axes=axes, camera=camera, reference_shape=tile.core_shape,
                                    reference_origin_yx=tile.core_origin, distorted_origin_yx=(r0, c0))

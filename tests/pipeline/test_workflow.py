@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 import ops
-from pipeline._workflow import load_workflow, run_workflow
+from pipeline._workflow import load_workflow
 from pipeline.cli import main
 
 WORKFLOWS = Path(__file__).resolve().parents[2] / "workflows"
