@@ -338,9 +338,9 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
 
             t0 = time.perf_counter()
             threshold = ops.change_threshold(hist, params=config.changes)
-            summaries = runner.map("label", _tasks.label_task,
-                                   [(store, t, shape, threshold, config.changes) for t in grid])
-            summaries = {s.index: s for s in summaries}
+            labelled = runner.map("label", _tasks.label_task,
+                                  [(store, t, shape, threshold, config.changes) for t in grid])
+            summaries = {s.index: s for s, _ in labelled}
             offsets, root, area, peak = tiles.merge_tile_labels(summaries, grid.grid_shape)
             keep_global = ops.keep_components(area, peak, threshold, params=config.changes)
             args = []
@@ -349,10 +349,12 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                 keep = keep_global[root[offsets[t.index]:offsets[t.index] + n]].copy()
                 keep[0] = False
                 args.append((store, t, keep, config.changes))
-            changed = sum(runner.map("mask", _tasks.mask_task, args))
-            runner.map("reference", _tasks.reference_mask_task,
-                       [(store, t, shape, camera, axes, grid.halo) for t in grid])
+            masked = runner.map("mask", _tasks.mask_task, args)
+            changed = sum(n for n, _ in masked)
+            mapped = runner.map("reference", _tasks.reference_mask_task,
+                                [(store, t, shape, camera, axes, grid.halo) for t in grid])
             timings["changes_s"] = time.perf_counter() - t0
+            timings["changes_compute_s_sum"] = float(sum(c for _, c in labelled + masked + mapped))
             tasks_per_tile = runner.tasks_run / len(grid)
 
         timings["total_s"] = time.perf_counter() - t_start

@@ -64,29 +64,34 @@ def register_task(store, tile, camera, params, prior=None):
 
 def label_task(store, tile, shape, threshold, change_params):
     """Stage 2: label the change candidates of one core (score read with the
-    margin the local half-maximum test needs)."""
+    margin the local half-maximum test needs).  Returns (TileLabels, compute
+    seconds); the next two stages also return their compute seconds."""
     group = _open(store)
     pad = change_params.half_max_window // 2 + 1
     r0, r1 = max(tile.core[0].start - pad, 0), min(tile.core[0].stop + pad, shape[0])
     c0, c1 = max(tile.core[1].start - pad, 0), min(tile.core[1].stop + pad, shape[1])
     score = group["change_score"][r0:r1, c0:c1]
+    start = time.perf_counter()
     candidates = ops.change_candidates(score, threshold, params=change_params)
     core = (slice(tile.core[0].start - r0, tile.core[0].stop - r0), slice(tile.core[1].start - c0, tile.core[1].stop - c0))
     labels, area, peak = ops.label_components(candidates[core], score[core])
+    compute = time.perf_counter() - start
     if len(area) > 1:  # unwritten chunks read as 0: a tile without candidates writes nothing
         group["work/labels"][tile.core] = labels
-    return TileLabels.from_labels(tile.index, labels, area, peak)
+    return TileLabels.from_labels(tile.index, labels, area, peak), compute
 
 
 def mask_task(store, tile, keep, change_params):
     """Stage 3: keep the labels of components that passed, fill small holes."""
     if not keep.any():
-        return 0  # change_mask reads 0 where nothing was written
+        return 0, 0.0  # change_mask reads 0 where nothing was written
     group = _open(store)
     labels = group["work/labels"][tile.core]
+    start = time.perf_counter()
     mask = ops.fill_holes(keep[labels], params=change_params)
+    compute = time.perf_counter() - start
     group["change_mask"][tile.core] = mask.astype(np.uint8)
-    return int(mask.sum())
+    return int(mask.sum()), compute
 
 
 def reference_mask_task(store, tile, shape, camera, axes, halo):
@@ -97,9 +102,11 @@ def reference_mask_task(store, tile, shape, camera, axes, halo):
     c0, c1 = max(tile.core[1].start - halo, 0), min(tile.core[1].stop + halo, shape[1])
     mask = group["change_mask"][r0:r1, c0:c1]
     if not mask.any():
-        return 0
+        return 0, 0.0
     trajectory = group["trajectory"][r0:r1].astype(np.float64)
+    start = time.perf_counter()
     ref = ops.changes_to_reference(mask, trajectory, axes=axes, camera=camera, reference_shape=tile.core_shape,
                                    reference_origin_yx=tile.core_origin, distorted_origin_yx=(r0, c0))
+    compute = time.perf_counter() - start
     group["change_mask_reference"][tile.core] = ref
-    return int(ref.sum())
+    return int(ref.sum()), compute
