@@ -2,8 +2,8 @@
 
 Stages (each one task per tile, see :mod:`pipeline._tasks`):
 
-1. ingest both images into the store (reference with its halo baked into one
-   chunk per tile, the capture chunked by tile);
+1. ingest both images into the store, chunked by tile (a tile task reads its
+   core and halo: at most nine chunks);
 2. register every tile (resumable: finished tiles are marked in the store);
 3. fuse the per-row trajectories of tiles sharing rows, re-solve tiles whose
    path disagrees with their band's around the others' path;
@@ -94,7 +94,6 @@ def _specs(grid, dims):
     h, w = grid.shape
     t = grid.tile
     ny, nx = grid.grid_shape
-    wh, ww = grid.window_shape
     spec = tiles.ArraySpec
     return {
         "registered": spec((h, w), "float32", (t, t), ("y", "x"), float("nan")),
@@ -113,8 +112,7 @@ def _specs(grid, dims):
                                   compressed=False),
         "work/tile_done": spec((ny, nx), "uint8", (1, 1), ("tile_y", "tile_x"), compressed=False),
         "work/labels": spec((h, w), "int32", (t, t), ("y", "x"), compressed=False),
-        "ingest/reference_windows": spec((ny, nx, wh, ww), "float32", (1, 1, wh, ww),
-                                         ("tile_y", "tile_x", "window_y", "window_x"), float("nan"), compressed=False),
+        "ingest/reference": spec((h, w), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
         "ingest/distorted": spec((h, w), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
     }
 
@@ -228,9 +226,9 @@ def _ingest(runner, group, store, ref_info, dist_info, grid):
     if group.attrs.get("ingest_complete"):
         log.info("ingest: already complete (resume)")
         return
-    args = [(store, "ingest/reference_windows", ref_info.path, ref_info.shape, t, "windows") for t in grid]
+    args = [(store, "ingest/reference", ref_info.path, ref_info.shape, t) for t in grid]
     stats_ref = runner.map("ingest ref", _tasks.ingest_task, args)
-    args = [(store, "ingest/distorted", dist_info.path, dist_info.shape, t, "plain") for t in grid]
+    args = [(store, "ingest/distorted", dist_info.path, dist_info.shape, t) for t in grid]
     stats_dist = runner.map("ingest dist", _tasks.ingest_task, args)
     tiles.check_stats(sum(stats_ref[1:], stats_ref[0]), ref_info.path)
     tiles.check_stats(sum(stats_dist[1:], stats_dist[0]), dist_info.path)

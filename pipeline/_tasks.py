@@ -8,7 +8,7 @@ import numpy as np
 import zarr
 
 import ops
-from tiles import ingest_core, ingest_window
+from tiles import ingest_core, read_padded
 from tiles._stitch import TileLabels
 
 __all__ = []
@@ -18,12 +18,9 @@ def _open(store, mode="r+"):
     return zarr.open_group(store=str(store), mode=mode)
 
 
-def ingest_task(store, name, path, shape, tile, layout):
+def ingest_task(store, name, path, shape, tile):
     """Ingest one tile of an input image (see :mod:`tiles._ingest`)."""
-    array = _open(store)[name]
-    if layout == "windows":
-        return ingest_window(path, shape, tile, array)
-    return ingest_core(path, shape, tile, array)
+    return ingest_core(path, shape, tile, _open(store)[name])
 
 
 def register_task(store, tile, camera, params, prior=None):
@@ -38,8 +35,7 @@ def register_task(store, tile, camera, params, prior=None):
     group = _open(store)
     ty, tx = tile.index
     h, w = tile.core_shape
-    wh, ww = tile.window[0].stop - tile.window[0].start, tile.window[1].stop - tile.window[1].start
-    reference = group["ingest/reference_windows"][ty, tx][:wh, :ww]
+    reference = read_padded(group["ingest/reference"], *tile.window)
     distorted = group["ingest/distorted"][tile.core]
     read = time.perf_counter() - start
     ref_valid = np.isfinite(reference)

@@ -2,7 +2,7 @@
 stores and the seam merge of per-tile labels."""
 
 from ._grid import Tile, TileGrid
-from ._ingest import WindowStats, check_stats, ingest_core, ingest_window
+from ._ingest import WindowStats, check_stats, ingest_core, read_padded
 from ._io import (
     GeoInfo,
     ImageInfo,
@@ -32,7 +32,7 @@ __all__ = [
     "WindowStats",
     "check_stats",
     "ingest_core",
-    "ingest_window",
+    "read_padded",
     "GeoInfo",
     "ImageInfo",
     "Raster",

@@ -1,16 +1,16 @@
-"""Ingest: an input image becomes zarr arrays laid out for one-chunk tile reads.
+"""Ingest: an input image becomes a zarr array chunked by tile.
 
-Two layouts, both float32 luminance with NaN for nodata:
+Float32 luminance with NaN for nodata, one chunk per core tile, uncompressed
+(the array is scratch: written once, read by the tile tasks, deleted).  Every
+tile is read from the input with a windowed read and written by one task, so
+no step holds the whole image.
 
-- ``windows`` (the reference): array (tiles_y, tiles_x, Hw, Ww), one chunk per
-  tile holding its core *and halo*, padded with NaN beyond the image.  A tile
-  task reads exactly one chunk, whatever the halo; the price is storing the
-  overlap twice (a factor ``((T + 2h) / T)^2`` on disk).
-- ``plain`` (the distorted capture): array (H, W) chunked by tile; a tile task
-  reads its core, one chunk (two to four for the longer edge tiles).
-
-Every tile is read from the input with a windowed read and written by one task,
-so neither step ever holds the whole image.
+A tile task reads its core plus halo with :func:`read_padded`, which touches
+up to nine chunks.  The alternative, baking each tile's halo into one chunk
+of its own, was measured and dropped: with the default halo of an 8192 x 8192
+image (258 px around 512-px tiles) it writes and decodes four times the image
+(ingest 6.9 s of a 144 s run, 4.8 %), while nine uncompressed chunk reads cost
+about 5 ms per tile against about 1 s of registration.
 """
 
 from dataclasses import dataclass
@@ -21,7 +21,7 @@ from ops import InputError
 
 from ._io import read_window
 
-__all__ = ["ingest_window", "ingest_core", "check_stats", "WindowStats"]
+__all__ = ["ingest_core", "read_padded", "check_stats", "WindowStats"]
 
 
 @dataclass(frozen=True)
@@ -59,25 +59,20 @@ def _stats(data):
     return WindowStats(int(values.size), float(values.min()), float(values.max()))
 
 
-def ingest_window(path, shape, tile, array):
-    """Write ``tile``'s window (core and halo) of the image at ``path`` into the
-    ``windows`` layout ``array`` (tiles_y, tiles_x, Hw, Ww).
-
-    Returns
-    -------
-    WindowStats
-        Of the tile's core.
-    """
-    data = _read_clipped(path, shape, *tile.window)
-    padded = np.full(array.shape[2:], np.nan, dtype=np.float32)
-    padded[:data.shape[0], :data.shape[1]] = data
-    array[tile.index[0], tile.index[1]] = padded
-    return _stats(data[tile.core_in_window])
+def read_padded(array, rows, cols):
+    """``array[rows, cols]`` of a 2-D array (zarr or numpy), NaN where the window
+    extends beyond the array."""
+    out = np.full((rows.stop - rows.start, cols.stop - cols.start), np.nan, dtype=np.float32)
+    r0, r1 = max(rows.start, 0), min(rows.stop, array.shape[0])
+    c0, c1 = max(cols.start, 0), min(cols.stop, array.shape[1])
+    if r1 > r0 and c1 > c0:
+        out[r0 - rows.start:r1 - rows.start, c0 - cols.start:c1 - cols.start] = array[r0:r1, c0:c1]
+    return out
 
 
 def ingest_core(path, shape, tile, array):
-    """Write ``tile``'s core of the image at ``path`` into the ``plain`` layout
-    ``array`` (H, W).  Returns :class:`WindowStats` of the core."""
+    """Write ``tile``'s core of the image at ``path`` into ``array`` (H, W).
+    Returns :class:`WindowStats` of the core."""
     data = _read_clipped(path, shape, *tile.core)
     array[tile.core] = data
     return _stats(data)
