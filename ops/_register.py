@@ -20,7 +20,8 @@ from ._camera import Camera, full_poses
 from ._errors import ParameterError
 from ._oracle import solve_row_exact
 from ._posespace import PoseSpace
-from ._rowsolve import _build_row, _gather_row, _propagate_rows, _remap_rows, _row_step, _solve_huber_nn, _synthesize
+from ._rowsolve import (_build_row, _gather_row, _propagate_rows, _row_step, _solve_huber_nn,
+                        _synthesize, _warp_into)
 
 __all__ = ["RegistrationParams", "Registration", "register"]
 
@@ -248,12 +249,9 @@ class _RowProblem:
                 self.stack = grow
             pose = np.zeros(len(self.axes))
             pose[self.other] = np.asarray(index, dtype=np.float64)[self.other] * self.steps[self.other]
-            poses = np.broadcast_to(full_poses(pose, self.axes), (self.stack_shape[0], 1, 6)).copy()
             first_row = self.dy - self.margin + band * self.BAND - self.pad
-            image, valid = _remap_rows(self.ref, poses, self.focal, self.cx, self.cy, self.stack_shape[1],
-                                       float(first_row), float(self.dx - self.margin))
-            image[valid == 0] = np.nan
-            self.stack[slot] = image
+            _warp_into(self.ref, full_poses(pose, self.axes), self.focal, self.cx, self.cy, float(first_row),
+                       float(self.dx - self.margin), self.stack[slot])
             self.slots[(key, band)] = slot
         return slot
 
@@ -607,7 +605,7 @@ def _block_rows(informative, mid, count, height):
     return np.sort(rows[np.argsort(np.abs(rows - mid), kind="stable")][:count])
 
 
-def _refine_start(solver, center, rows, uncertainty):
+def _refine_start(solver, center, rows, uncertainty, iterations=2):
     """Joint solve of a block of rows around a coarse pose (a grid wide enough
     for the coarse search's spacing); returns the block's centroid, the blur
     extent per axis and the cost."""
@@ -616,7 +614,7 @@ def _refine_start(solver, center, rows, uncertainty):
     coarse_hw = np.maximum(np.maximum(np.asarray(params.half_width) + steps, 4 * steps),
                            np.ceil(np.asarray(uncertainty) / steps) * steps + 2 * steps)
     space = params.space.widened(tuple(coarse_hw))
-    for _ in range(2):
+    for _ in range(iterations):
         _, poses, w, _, _ = solver.solve(rows, space, center)
         c = _centroid(poses, w)
         if c is None:
@@ -632,10 +630,12 @@ def _choose_start(solver, start, rows):
     ``start`` is (candidates, uncertainty per axis)."""
     candidates, uncertainty = start
     best = None
-    for center in candidates:
-        refined = _refine_start(solver, np.asarray(center, dtype=np.float64), rows, uncertainty)
+    for center in candidates:  # one solve each decides; the winner is refined once more
+        refined = _refine_start(solver, np.asarray(center, dtype=np.float64), rows, uncertainty, iterations=1)
         if best is None or refined[2] < best[2]:
             best = refined
+    if len(candidates) > 1 and np.isfinite(best[2]):
+        best = _refine_start(solver, best[0], rows, uncertainty, iterations=1)
     return best[0], best[1]
 
 

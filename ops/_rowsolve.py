@@ -684,3 +684,16 @@ def _propagate_rows(stack, table, other_lo, band_lo, band, pad, margin, rows, c_
         prev_center[:] = center
         w_prev[:] = w
     return rows.shape[0], 0, 0, 0
+
+
+@numba.njit(**_JIT)
+def _warp_into(src, pose6, focal, cx, cy, oy, ox, out):
+    """``out`` (R, W) = rows ``oy ..`` (columns ``ox ..``) of ``src`` warped by one
+    pose, NaN where the pose samples outside ``src`` or nodata."""
+    rows, width = out.shape
+    poses = pose6.reshape(1, 6)
+    buf = np.empty((1, width), dtype=np.float32)
+    for q in range(rows):
+        v = _build_row(src, oy + q, ox, poses, focal, cx, cy, buf)
+        for j in range(width):
+            out[q, j] = buf[0, j] if v[j] else np.nan

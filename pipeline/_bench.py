@@ -280,7 +280,7 @@ def bench_gain(workdir, *, size=2048, workers=None):
     return out
 
 
-def run_bench(*, sections=SECTIONS, data=None, quick=False, workdir=None, sizes=None, workers=None):
+def run_bench(*, sections=SECTIONS, data=None, quick=False, workdir=None, sizes=None, workers=None, tile=512):
     """Run the benchmark sections; returns a dict of results (also printed)."""
     data = Path(data) if data else None
     if data is not None and not data.exists():
@@ -295,7 +295,8 @@ def run_bench(*, sections=SECTIONS, data=None, quick=False, workdir=None, sizes=
         if "real" in sections and data is not None:
             results["real"] = bench_real(data, tmp, workers=workers)
         if "scale" in sections:
-            results["scale"] = bench_scale(tmp, sizes=sizes or ((512, 1024) if quick else (2048, 4096, 8192)))
+            results["scale"] = bench_scale(tmp, sizes=sizes or ((512, 1024) if quick else (2048, 4096, 8192)),
+                                           tile=tile)
         if "gain" in sections:
             results["gain"] = bench_gain(tmp, size=512 if quick else 2048, workers=workers)
     return results

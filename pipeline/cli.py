@@ -218,8 +218,9 @@ def evaluate(store, truth_dir, as_json):
 @click.option("--quick", is_flag=True, help="Small sizes: a smoke run in about a minute.")
 @click.option("--sizes", default=None, help="Image sides of the scale section, e.g. 2048,4096,8192.")
 @click.option("--workers", type=int, default=None, help="Local worker threads (default: one per core).")
+@click.option("--tile-size", type=int, default=512, show_default=True, help="Tile side of the scale section.")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None, help="Also write results here.")
-def bench(sections, data, quick, sizes, workers, json_path):
+def bench(sections, data, quick, sizes, workers, tile_size, json_path):
     """Measure accuracy against the cvxpy oracle, speed, memory and real captures."""
     from ._bench import SECTIONS, run_bench
 
@@ -228,7 +229,7 @@ def bench(sections, data, quick, sizes, workers, json_path):
     if unknown:
         raise click.BadParameter(f"unknown sections {unknown}; expected some of {SECTIONS}", param_hint="--sections")
     size_list = tuple(int(v) for v in _floats(sizes, "--sizes")) if sizes else None
-    results = run_bench(sections=chosen, data=data, quick=quick, sizes=size_list, workers=workers)
+    results = run_bench(sections=chosen, data=data, quick=quick, sizes=size_list, workers=workers, tile=tile_size)
     if json_path:
         with open(json_path, "w") as fh:
             json.dump(results, fh, indent=2, default=str)
