@@ -43,6 +43,7 @@ def register_task(store, tile, camera, params, prior=None):
     result = ops.register(np.nan_to_num(reference), np.nan_to_num(distorted), camera=camera, params=params,
                           reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
                           reference_valid=ref_valid, distorted_valid=dist_valid, prior=prior)
+    tile.check_core(result.registered)
     score = np.abs(result.chi)
     residual = np.where(result.valid, distorted - result.registered, 0.0)
     hist = ops.score_histogram(residual, score, result.valid)

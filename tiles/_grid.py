@@ -40,12 +40,12 @@ class Tile:
     def window_origin(self):
         return (self.window[0].start, self.window[1].start)
 
-    @property
-    def core_in_window(self):
-        """Slices of the core inside the window array."""
-        (r, c), (wr, wc) = self.core_origin, self.window_origin
-        h, w = self.core_shape
-        return (slice(r - wr, r - wr + h), slice(c - wc, c - wc + w))
+    def check_core(self, array):
+        """Raise if ``array`` does not have this tile's core shape (the stitching
+        guard: a tile writes exactly its core)."""
+        if tuple(array.shape[:2]) != self.core_shape:
+            raise ParameterError(f"tile {self.index}: expected a core of shape {self.core_shape}, "
+                                 f"got {tuple(array.shape[:2])}")
 
 
 def _edges(size, tile):
@@ -100,11 +100,6 @@ class TileGrid:
         """(tiles_y, tiles_x)."""
         return (len(self.row_edges) - 1, len(self.col_edges) - 1)
 
-    @property
-    def window_shape(self):
-        """Largest window (H, W): every window fits in it."""
-        return (int(np.diff(self.row_edges).max()) + 2 * self.halo, int(np.diff(self.col_edges).max()) + 2 * self.halo)
-
     def __len__(self):
         return int(np.prod(self.grid_shape))
 
@@ -125,8 +120,3 @@ class TileGrid:
         for ty in range(ny):
             for tx in range(nx):
                 yield self[ty, tx]
-
-    def check_core(self, tile, array):
-        """Raise if ``array`` does not have the core shape of ``tile`` (stitching guard)."""
-        if tuple(array.shape[:2]) != tile.core_shape:
-            raise ParameterError(f"tile {tile.index}: expected a core of shape {tile.core_shape}, got {array.shape[:2]}")

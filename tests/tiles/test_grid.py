@@ -1,0 +1,59 @@
+"""TileGrid geometry and the seam merge of per-tile labels."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from ops import ParameterError
+from tiles import TileGrid, TileLabels, merge_tile_labels
+
+
+def test_tiles_cover_the_image_once_with_ragged_and_merged_edges():
+    grid = TileGrid((1000, 1100), 256, 20)
+    assert grid.grid_shape == (4, 4)
+    # 1000 = 3 x 256 + 232 (kept ragged); 1100 = 4 x 256 + 76 (76 < 128: merged into the last tile)
+    assert list(np.diff(grid.row_edges)) == [256, 256, 256, 232]
+    assert list(np.diff(grid.col_edges)) == [256, 256, 256, 332]
+    cover = np.zeros((1000, 1100), int)
+    for tile in grid:
+        cover[tile.core] += 1
+        assert tile.window[0].start == tile.core[0].start - 20 and tile.window[1].stop == tile.core[1].stop + 20
+    assert (cover == 1).all()
+
+
+def test_single_tile_and_errors():
+    grid = TileGrid((100, 120), 512, 8)
+    assert len(grid) == 1 and grid[0, 0].core_shape == (100, 120)
+    with pytest.raises(IndexError):
+        grid[1, 0]
+    with pytest.raises(ParameterError, match="tile size"):
+        TileGrid((100, 100), 8, 0)
+    with pytest.raises(ParameterError, match="halo"):
+        TileGrid((100, 100), 64, -1)
+    with pytest.raises(ParameterError, match="core"):
+        grid[0, 0].check_core(np.zeros((99, 120)))
+
+
+def test_seam_merge_equals_whole_image_labelling():
+    rng = np.random.default_rng(0)
+    mask = ndimage.binary_dilation(rng.random((300, 340)) > 0.985, iterations=3)
+    score = rng.random(mask.shape).astype(np.float32)
+    grid = TileGrid(mask.shape, 64, 0)
+    summaries = {}
+    for tile in grid:
+        labels, n = ndimage.label(mask[tile.core], structure=np.ones((3, 3)))
+        area = np.bincount(labels.ravel(), minlength=n + 1)
+        peak = np.zeros(n + 1, np.float32)
+        np.maximum.at(peak, labels.ravel(), score[tile.core].ravel())
+        summaries[tile.index] = (TileLabels.from_labels(tile.index, labels, area, peak), labels)
+    offsets, root, area, peak = merge_tile_labels({k: v[0] for k, v in summaries.items()}, grid.grid_shape)
+    merged = np.zeros(mask.shape, np.int64)
+    for tile in grid:
+        labels = summaries[tile.index][1]
+        merged[tile.core] = np.where(labels > 0, root[offsets[tile.index] + labels] + 1, 0)
+    whole, n = ndimage.label(mask, structure=np.ones((3, 3)))
+    # the same partition of the pixels, and the same component areas
+    pairs = {(a, b) for a, b in zip(whole[mask], merged[mask])}
+    assert len(pairs) == n == len({b for _, b in pairs})
+    for a, b in pairs:
+        assert (whole == a).sum() == area[b - 1]
