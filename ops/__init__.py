@@ -7,6 +7,8 @@ Pure numpy (with numba-compiled inner loops); no I/O, no dask, no zarr.
 from ._baseline import EccResult, ecc_homography
 from ._camera import AXIS_UNITS, POSE_AXES, Camera, full_poses, pose_homographies
 from ._changes import (
+    RESIDUAL_BINS,
+    SCORE_BINS,
     ChangeParams,
     ChangeResult,
     ScoreHistogram,
@@ -18,6 +20,7 @@ from ._changes import (
     fill_holes,
     keep_components,
     label_components,
+    residual_median,
     score_histogram,
 )
 from ._errors import InputError, ParameterError, RSMBError, SolverError
@@ -59,6 +62,9 @@ __all__ = [
     "ScoreHistogram",
     "score_histogram",
     "change_threshold",
+    "residual_median",
+    "RESIDUAL_BINS",
+    "SCORE_BINS",
     "change_mask",
     "change_candidates",
     "label_components",

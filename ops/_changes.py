@@ -32,13 +32,16 @@ from ._camera import pose_homographies
 from ._errors import ParameterError
 from ._threshold import kapur_threshold_histogram
 
-__all__ = ["ChangeParams", "ScoreHistogram", "score_histogram", "change_threshold", "change_candidates",
+__all__ = ["ChangeParams", "ScoreHistogram", "score_histogram", "change_threshold", "residual_median",
+           "RESIDUAL_BINS", "SCORE_BINS", "change_candidates",
            "label_components", "keep_components", "fill_holes", "change_mask", "changes_to_reference",
            "ChangeResult", "detect_changes"]
 
 THRESHOLD_METHODS = ("noise", "kapur")
 _RESIDUAL_EDGES = np.concatenate([[0.0], np.geomspace(1e-6, 4.0, 1024)])
 _SCORE_EDGES = np.linspace(0.0, 2.0, 513)
+#: Bins of :class:`ScoreHistogram`'s two histograms.
+RESIDUAL_BINS, SCORE_BINS = len(_RESIDUAL_EDGES) - 1, len(_SCORE_EDGES) - 1
 
 
 @dataclass(frozen=True)
@@ -103,7 +106,7 @@ class ScoreHistogram:
 
     Attributes
     ----------
-    residual : ndarray of int64, shape (1024,)
+    residual : ndarray of int64, shape (RESIDUAL_BINS,)
         Counts of ``|g - F w|`` on log-spaced bins from 1e-6 to 4.
     score : ndarray of int64, shape (512,)
         Counts of non-zero ``|chi|`` on linear bins from 0 to 2.
@@ -145,13 +148,27 @@ def change_threshold(histogram, *, params=ChangeParams()):
     if params.threshold == "kapur":
         t = kapur_threshold_histogram(histogram.score, _SCORE_EDGES)
         return float(max(t if np.isfinite(t) else params.floor, params.floor))
-    counts = histogram.residual
-    total = counts.sum()
-    if total == 0:
+    if histogram.residual.sum() == 0:
         return float(params.floor)
-    median_bin = int(np.searchsorted(np.cumsum(counts), 0.5 * total))
-    median = float(_RESIDUAL_EDGES[median_bin + 1])
-    return float(max(params.k * 1.4826 * median, params.floor))
+    return float(max(params.k * 1.4826 * float(residual_median(histogram.residual)), params.floor))
+
+
+def residual_median(counts):
+    """Median ``|residual|`` of residual histograms (the upper edge of the median
+    bin, about 1 % resolution).
+
+    Parameters
+    ----------
+    counts : ndarray, shape (..., RESIDUAL_BINS)
+        ``ScoreHistogram.residual`` counts, one histogram or a stack (e.g. per tile).
+
+    Returns
+    -------
+    ndarray, shape (...)
+    """
+    cum = np.cumsum(counts, axis=-1)
+    index = (cum < 0.5 * cum[..., -1:]).sum(axis=-1)
+    return _RESIDUAL_EDGES[np.minimum(index + 1, len(_RESIDUAL_EDGES) - 1)]
 
 
 def change_candidates(score, threshold, *, params=ChangeParams()):

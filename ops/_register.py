@@ -18,7 +18,7 @@ import numpy as np
 
 from ._camera import Camera, full_poses
 from ._errors import ParameterError
-from ._oracle import solve_row_exact
+from ._oracle import optimal_chi, solve_row_exact
 from ._posespace import PoseSpace
 from ._rowsolve import (_build_row, _gather_row, _propagate_rows, _row_step, _solve_huber_nn,
                         _synthesize, _warp_into)
@@ -564,7 +564,7 @@ def _apply_gain_slope(out, dist, delta, iterations=8):
     factor = 1.0 + b * u
     out.registered = np.where(valid, out.registered * factor, out.registered).astype(np.float32)
     r = dist - out.registered
-    out.chi = np.where(valid, np.sign(r) * np.maximum(np.abs(r) - delta, 0.0), 0.0).astype(np.float32)
+    out.chi = optimal_chi(np.where(valid, r, 0.0), lambda_chi=2 * delta).astype(np.float32)
 
 
 class _Outputs:
@@ -581,7 +581,7 @@ class _Outputs:
         reg = np.empty(n)
         _synthesize(a, w, reg)
         r = g_row - reg
-        chi = np.sign(r) * np.maximum(np.abs(r) - delta, 0.0)
+        chi = optimal_chi(r, lambda_chi=2 * delta)
         self.registered[row] = np.where(valid, reg, np.nan)
         self.chi[row] = np.where(valid, chi, 0.0)
         self.valid[row] = valid

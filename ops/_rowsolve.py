@@ -27,6 +27,8 @@ import math
 import numba
 import numpy as np
 
+from ._oracle import optimal_chi
+
 __all__ = []
 
 _JIT = dict(nogil=True, cache=True)
@@ -480,8 +482,7 @@ def solve_row_fast(F, g, *, lambda_w, lambda_chi, w0=None, tol=1e-7, max_outer=1
     w = np.zeros(a.shape[0]) if w0 is None else np.maximum(np.asarray(w0, dtype=np.float64), 0.0).copy()
     delta = 0.5 * float(lambda_chi)
     obj, _, _ = _solve_huber_nn(a, g64, w, float(lambda_w), delta, float(tol), int(max_outer), int(max_add))
-    r = g64 - a.T.astype(np.float64) @ w
-    chi = np.sign(r) * np.maximum(np.abs(r) - delta, 0.0)
+    chi = optimal_chi(g64 - a.T.astype(np.float64) @ w, lambda_chi=lambda_chi)
     return w, chi, float(obj)
 
 

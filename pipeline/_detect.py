@@ -117,8 +117,8 @@ def _specs(grid, dims):
     }
 
 
-_HIST = (1024, 512)  # bins of ops.ScoreHistogram: residual, score
-_SUMMARY = sum(_HIST) + 2  # histograms, gain, seconds
+_HIST = (ops.RESIDUAL_BINS, ops.SCORE_BINS)
+_SUMMARY = sum(_HIST) + 2  # per tile: both histograms, gain, seconds
 
 
 def _tile_results(group):
@@ -213,15 +213,6 @@ def _outliers(worst, residual_level, tolerance):
     return out
 
 
-def _median_level(hist):
-    """Median |residual| of each tile from its histogram (ny, nx, bins): a
-    fit-quality level."""
-    edges = ops._changes._RESIDUAL_EDGES
-    cum = np.cumsum(hist, axis=-1)
-    idx = (cum < 0.5 * cum[..., -1:]).sum(-1)
-    return edges[np.minimum(idx + 1, len(edges) - 1)]
-
-
 def _ingest(runner, group, store, ref_info, dist_info, grid):
     if group.attrs.get("ingest_complete"):
         log.info("ingest: already complete (resume)")
@@ -314,7 +305,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             t0 = time.perf_counter()
             paths, states, _, residual_hists, _, _ = _tile_results(group)
             fused, agree, worst = _agreement(paths, states, grid, camera, axes)
-            resolve = _outliers(worst, _median_level(residual_hists), config.agreement)
+            resolve = _outliers(worst, ops.residual_median(residual_hists), config.agreement)
             if resolve:
                 log.info("re-solving %d tile(s) whose path disagrees with their band: %s", len(resolve), resolve)
                 args = []
@@ -403,12 +394,12 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                  summary["megapixels_per_s"])
         return summary
     except BaseException:
-        if not resume_safe(group):
+        if not _resume_safe(group):
             tiles.abort_result_store(store)
         raise
 
 
-def resume_safe(group):
+def _resume_safe(group):
     """An interrupted run keeps its partial store when some tile finished, so that
     ``--resume`` can continue it; otherwise the partial store is removed."""
     try:
