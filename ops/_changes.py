@@ -26,7 +26,6 @@ import cv2
 import numba
 import numpy as np
 from scipy import ndimage
-from skimage.morphology import remove_small_holes
 
 from ._camera import pose_homographies
 from ._errors import ParameterError
@@ -228,10 +227,23 @@ def keep_components(area, peak, threshold, *, params=ChangeParams()):
 
 
 def fill_holes(mask, *, params=ChangeParams()):
-    """Fill holes smaller than ``min_area`` inside changes."""
+    """Fill holes smaller than ``min_area`` inside changes: 4-connected background
+    regions enclosed by one 8-connected change (background that reaches the
+    border of ``mask`` is not a hole).  Works object by object, on bounding boxes,
+    so its cost follows the changes rather than the window."""
+    out = mask.copy()
     if params.min_area <= 1 or not mask.any():
-        return mask.copy()
-    return remove_small_holes(mask, max_size=params.min_area - 1, connectivity=1)
+        return out
+    labels, _ = ndimage.label(mask, structure=np.ones((3, 3), bool))
+    for i, box in enumerate(ndimage.find_objects(labels), 1):
+        box = tuple(slice(max(b.start - 1, 0), b.stop + 1) for b in box)
+        holes = ndimage.binary_fill_holes(labels[box] == i) & ~mask[box]
+        if holes.any():
+            pieces, _ = ndimage.label(holes)
+            small = np.bincount(pieces.ravel()) < params.min_area
+            small[0] = False
+            out[box] |= small[pieces]
+    return out
 
 
 def change_mask(score, threshold, *, params=ChangeParams()):

@@ -225,6 +225,8 @@ class _RowProblem:
         self.slots = {}
         self.slot_cache = {}
         self.stack = None
+        self.free = []
+        self.generation = 0  # counts evictions: cached slot numbers are stale when it changes
         # columns: the distorted window plus the largest shift; rows: one band
         # plus room for the grid's ty offsets around its centre
         self.margin = int(margin)
@@ -241,12 +243,7 @@ class _RowProblem:
     def _slot(self, key, index, band):
         slot = self.slots.get((key, band))
         if slot is None:
-            slot = len(self.slots)
-            if self.stack is None or slot == self.stack.shape[0]:
-                grow = np.empty((max(16, 2 * slot),) + self.stack_shape, dtype=np.float32)
-                if self.stack is not None:
-                    grow[:slot] = self.stack
-                self.stack = grow
+            slot = self._free_slot(band)
             pose = np.zeros(len(self.axes))
             pose[self.other] = np.asarray(index, dtype=np.float64)[self.other] * self.steps[self.other]
             first_row = self.dy - self.margin + band * self.BAND - self.pad
@@ -254,6 +251,26 @@ class _RowProblem:
                        float(self.dx - self.margin), self.stack[slot])
             self.slots[(key, band)] = slot
         return slot
+
+    def _free_slot(self, band):
+        """Room for one more pre-warped image of ``band``: an unused slot, else the
+        slots of bands two or more away (rows are solved band after band, so those
+        are rarely needed again, and warping again gives the same image), else a
+        larger stack.  This keeps a tile's memory to a few bands of rotations."""
+        if not self.free:
+            stale = [kb for kb in self.slots if abs(kb[1] - band) >= 2]
+            if stale:
+                self.free = [self.slots.pop(kb) for kb in stale]
+                self.slot_cache = {k: v for k, v in self.slot_cache.items() if abs(k[1] - band) < 2}
+                self.generation += 1
+            else:
+                used = 0 if self.stack is None else self.stack.shape[0]
+                grow = np.empty((max(16, 2 * used),) + self.stack_shape, dtype=np.float32)
+                if used:
+                    grow[:used] = self.stack
+                self.stack = grow
+                self.free = list(range(grow.shape[0] - 1, used - 1, -1))
+        return self.free.pop()
 
     def _slots_of(self, index, band):
         """Pre-warped image of every pose of a grid (by its non-translation part)."""
@@ -269,6 +286,19 @@ class _RowProblem:
                              dtype=np.int64)[inverse.ravel()]
             self.slot_cache[key] = slots
         return slots
+
+    def rotation_stride(self):
+        """Per axis, how many lattice steps a block solve may skip: rz steps are
+        sized for the image's farthest pixel (1 px there), so near the principal
+        point several of them move this window's pixels by less than a pixel."""
+        stride = np.ones(len(self.axes))
+        if "rz" in self.axes:
+            h, w = self.dist.shape
+            radius = np.hypot(np.array([self.dx, self.dx + w - 1]) - self.cx,
+                              np.array([self.dy, self.dy + h - 1])[:, None] - self.cy).max()
+            d = self.axes.index("rz")
+            stride[d] = max(1.0, np.floor(1.0 / (np.radians(self.steps[d]) * max(radius, 1.0))))
+        return stride
 
     def shifts(self, poses):
         """Whole-pixel ty and tx shifts of grid poses: two int arrays (K,)."""
@@ -289,7 +319,9 @@ class _RowProblem:
         k, n = poses.shape[0], self.width
         a = np.empty((k, len(rows) * n), dtype=np.float32)
         valid = np.empty(len(rows) * n, dtype=bool)
-        if not self.gather:
+        if self.gather:  # in this problem's lattice units (a block solve may skip steps)
+            index = np.rint(poses / self.steps).astype(np.int64)
+        else:
             poses6 = full_poses(poses, self.axes)
         for q, i in enumerate(rows):
             # write straight into the block's columns of this row
@@ -610,10 +642,10 @@ def _refine_start(solver, center, rows, uncertainty, iterations=2):
     for the coarse search's spacing); returns the block's centroid, the blur
     extent per axis and the cost."""
     params = solver.params
-    steps = np.asarray(params.step)
+    steps = np.asarray(params.step) * solver.problem.rotation_stride()
     coarse_hw = np.maximum(np.maximum(np.asarray(params.half_width) + steps, 4 * steps),
                            np.ceil(np.asarray(uncertainty) / steps) * steps + 2 * steps)
-    space = params.space.widened(tuple(coarse_hw))
+    space = PoseSpace(params.axes, tuple(coarse_hw), tuple(steps))
     for _ in range(iterations):
         _, poses, w, _, _ = solver.solve(rows, space, center)
         c = _centroid(poses, w)
@@ -705,10 +737,10 @@ class _Propagation:
         solver, space, problem, out = self.solver, self.space, self.solver.problem, self.out
         band_key = (tuple(center), problem.band_of(i, int(center[problem.ty] * self.step[problem.ty])
                                                    if problem.ty is not None else 0)[0])
-        if self._grid_key != band_key:
+        if self._grid_key != (band_key, problem.generation):
             index = center[None, :] + space.offsets()
             self._grid = problem.gather_args(i, index, space.lattice_poses(index))[:3]
-            self._grid_key = band_key
+            self._grid_key = (band_key, problem.generation)
         slot, shift_y, shift_x = self._grid
         y = problem.band_of(i, int(shift_y[len(shift_y) // 2]))[1]
         w = np.zeros(self.size) if w0 is None else w0
@@ -791,7 +823,11 @@ class _Propagation:
                 if arr["other"] >= 0:
                     index[arr["other"]] = other_index
                 key = (other_index,) if arr["other"] >= 0 else ()
-                arr["table"][other_index - arr["other_lo"], band - arr["band_lo"]] = problem._slot(key, index, band)
+                generation = problem.generation
+                slot = problem._slot(key, index, band)
+                if problem.generation != generation:  # slots of far bands were reused
+                    self._refill_table()
+                arr["table"][other_index - arr["other_lo"], band - arr["band_lo"]] = slot
             elif status == 2:
                 # outside the table: this row the Python way, then carry on
                 i = rows[pos]
@@ -801,6 +837,15 @@ class _Propagation:
                 else:
                     out.trajectory[i], out.row_state[i], prev = c, 1, i
                 pos += 1
+
+    def _refill_table(self):
+        """The compiled loop's (rotation, band) -> slot table from the problem's slots."""
+        arr, table = self._arrays, self._arrays["table"]
+        table[:] = -1
+        for (key, band), slot in self.solver.problem.slots.items():
+            r, b = (key[0] if key else 0) - arr["other_lo"], band - arr["band_lo"]
+            if 0 <= r < table.shape[0] and 0 <= b < table.shape[1]:
+                table[r, b] = slot
 
     def finish(self):
         """Interpolate the centroids of rows not solved on their own, then solve

@@ -1,16 +1,19 @@
 """``rsmb detect``: tiled RSMB registration and change detection of one capture.
 
-Stages (each one task per tile, see :mod:`pipeline._tasks`):
+Stages (one task per tile each, see :mod:`pipeline._tasks`):
 
-1. ingest both images into the store, chunked by tile (a tile task reads its
-   core and halo: at most nine chunks);
-2. register every tile (resumable: finished tiles are marked in the store);
+1. ingest the reference into the store, chunked by tile (a tile task reads
+   its core and halo: at most nine chunks);
+2. register every tile, its distorted core read from the input file
+   (resumable: finished tiles are marked in the store);
 3. fuse the per-row trajectories of tiles sharing rows, re-solve tiles whose
    path disagrees with their band's around the others' path;
 4. one change threshold for the whole image from summed tile histograms;
 5. label change candidates per tile, merge labels across seams, keep
    components that reach the threshold and the minimum area;
-6. changes in the reference grid from the fused trajectory;
+6. per tile, the mask of its window from the kept labels, small holes filled,
+   its core written, and its changes in the reference grid from the fused
+   trajectory (tiles with no kept label under their window are skipped);
 7. attributes, GeoTIFFs on request, and an atomic rename of the store.
 """
 
@@ -110,26 +113,38 @@ def _specs(grid, dims):
                                float("nan"), compressed=False),
         "work/tile_summary": spec((ny, nx, _SUMMARY), "float64", (1, 1, _SUMMARY), ("tile_y", "tile_x", "value"),
                                   compressed=False),
-        "work/tile_done": spec((ny, nx), "uint8", (1, 1), ("tile_y", "tile_x"), compressed=False),
         "work/labels": spec((h, w), "int32", (t, t), ("y", "x"), compressed=False),
         "ingest/reference": spec((h, w), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
-        "ingest/distorted": spec((h, w), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
     }
 
 
 _HIST = (ops.RESIDUAL_BINS, ops.SCORE_BINS)
-_SUMMARY = sum(_HIST) + 2  # per tile: both histograms, gain, seconds
+# per tile: both histograms, gain, seconds, distorted core's valid count, low, high; 1 when done
+_SUMMARY = sum(_HIST) + 6
 
 
 def _tile_results(group):
     """Per-tile results of stage 1 from the scratch arrays: trajectories (H, nx, D),
-    row states (H, nx), summed histogram, gains (ny, nx), seconds (ny, nx)."""
+    row states (H, nx), summed histogram, residual histograms (ny, nx, bins),
+    gains (ny, nx)."""
     rows = group["work/tile_rows"][:]
     summary = group["work/tile_summary"][:]
     hist = ops.ScoreHistogram(summary[..., :_HIST[0]].sum((0, 1)).astype(np.int64),
                               summary[..., _HIST[0]:sum(_HIST)].sum((0, 1)).astype(np.int64))
     states = np.nan_to_num(rows[..., -1]).astype(np.uint8)
-    return rows[..., :-1].astype(np.float64), states, hist, summary[..., :_HIST[0]], summary[..., -2], summary[..., -1]
+    return rows[..., :-1].astype(np.float64), states, hist, summary[..., :_HIST[0]], summary[..., -6]
+
+
+def _tile_done(group):
+    """(ny, nx) bool: tiles whose registration finished."""
+    return group["work/tile_summary"][..., -1] == 1
+
+
+def _distorted_stats(group):
+    """Statistics of the distorted image's valid pixels, from the tile summaries."""
+    summary = group["work/tile_summary"][:]
+    return sum((tiles.WindowStats(int(c), lo, hi) for c, lo, hi in summary[..., -4:-1].reshape(-1, 3)),
+               tiles.WindowStats(0, np.inf, -np.inf))
 
 
 def _row_end_points(tile):
@@ -213,16 +228,15 @@ def _outliers(worst, residual_level, tolerance):
     return out
 
 
-def _ingest(runner, group, store, ref_info, dist_info, grid):
+def _ingest(runner, group, store, ref_info, grid):
+    """The reference into the store, chunked by tile (a tile reads its window
+    from there; the distorted cores are read from their file by the tiles)."""
     if group.attrs.get("ingest_complete"):
         log.info("ingest: already complete (resume)")
         return
     args = [(store, "ingest/reference", ref_info.path, ref_info.shape, t) for t in grid]
-    stats_ref = runner.map("ingest ref", _tasks.ingest_task, args)
-    args = [(store, "ingest/distorted", dist_info.path, dist_info.shape, t) for t in grid]
-    stats_dist = runner.map("ingest dist", _tasks.ingest_task, args)
+    stats_ref = runner.map("ingest", _tasks.ingest_task, args)
     tiles.check_stats(sum(stats_ref[1:], stats_ref[0]), ref_info.path)
-    tiles.check_stats(sum(stats_dist[1:], stats_dist[0]), dist_info.path)
     group.attrs["ingest_complete"] = True
 
 
@@ -286,15 +300,15 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", dist_info.path, shape[0],
                      shape[1], len(grid), grid.tile, grid.halo, scheduler)
             t0 = time.perf_counter()
-            _ingest(runner, group, store, ref_info, dist_info, grid)
+            _ingest(runner, group, store, ref_info, grid)
             timings["ingest_s"] = time.perf_counter() - t0
 
             t0 = time.perf_counter()
-            done = group["work/tile_done"][:]
+            done = _tile_done(group)
             todo = [t for t in grid if not done[t.index]]
             if resume:
                 log.info("resume: %d of %d tiles already registered", len(grid) - len(todo), len(grid))
-            stats = runner.map("register", _tasks.register_task, [(store, t, camera, params) for t in todo])
+            stats = runner.map("register", _tasks.register_task, [(store, t, camera, params, dist_info.path, shape) for t in todo])
             timings["register_s"] = time.perf_counter() - t0
             timings["tiles_registered"] = len(todo)
             if stats:
@@ -303,7 +317,8 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                 timings["write_s_sum"] = float(sum(s["write_s"] for s in stats))
 
             t0 = time.perf_counter()
-            paths, states, _, residual_hists, _, _ = _tile_results(group)
+            tiles.check_stats(_distorted_stats(group), dist_info.path)
+            paths, states, hist, residual_hists, gains = _tile_results(group)
             fused, agree, worst = _agreement(paths, states, grid, camera, axes)
             resolve = _outliers(worst, ops.residual_median(residual_hists), config.agreement)
             if resolve:
@@ -314,10 +329,10 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                     rows = tile.core[0]
                     others = np.delete(paths[rows], tx, axis=1)
                     prior = _fuse(others, np.delete(states[rows], tx, axis=1))
-                    args.append((store, tile, camera, params, prior))
+                    args.append((store, tile, camera, params, dist_info.path, shape, prior))
                 runner.map("re-solve", _tasks.register_task, args)
-            paths, states, hist, _, gains, _ = _tile_results(group)
-            fused, agree, worst = _agreement(paths, states, grid, camera, axes)
+                paths, states, hist, _, gains = _tile_results(group)
+                fused, agree, worst = _agreement(paths, states, grid, camera, axes)
             group["trajectory"][:] = fused.astype(np.float32)
             group["tile_trajectory"][:] = paths.astype(np.float32)
             group["tile_row_state"][:] = states
@@ -332,18 +347,24 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             summaries = {s.index: s for s, _ in labelled}
             offsets, root, area, peak = tiles.merge_tile_labels(summaries, grid.grid_shape)
             keep_global = ops.keep_components(area, peak, threshold, params=config.changes)
-            args = []
+            kept = {}  # tile index -> keep flag per local label, for tiles that keep any
             for t in grid:
                 n = len(summaries[t.index].area)
                 keep = keep_global[root[offsets[t.index]:offsets[t.index] + n]].copy()
                 keep[0] = False
-                args.append((store, t, keep, config.changes))
-            masked = runner.map("mask", _tasks.mask_task, args)
+                if keep.any():
+                    kept[t.index] = (t.core, keep)
+            stored_path = fused.astype(np.float32).astype(np.float64)  # as the store holds it
+            args = []
+            for t in grid:
+                window = t.grown(grid.halo, shape)
+                pieces = [kept[i] for i in grid.covering(window) if i in kept]
+                if pieces:
+                    args.append((store, t, window, pieces, stored_path[window[0]], camera, axes, config.changes))
+            masked = runner.map("masks", _tasks.mask_task, args)
             changed = sum(n for n, _ in masked)
-            mapped = runner.map("reference", _tasks.reference_mask_task,
-                                [(store, t, shape, camera, axes, grid.halo) for t in grid])
             timings["changes_s"] = time.perf_counter() - t0
-            timings["changes_compute_s_sum"] = float(sum(c for _, c in labelled + masked + mapped))
+            timings["changes_compute_s_sum"] = float(sum(c for _, c in labelled + masked))
             tasks_per_tile = runner.tasks_run / len(grid)
 
         timings["total_s"] = time.perf_counter() - t_start
@@ -393,8 +414,9 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
         log.info("wrote %s: %d changed px (threshold %.3f), %.2f MP/s", final, changed, threshold,
                  summary["megapixels_per_s"])
         return summary
-    except BaseException:
-        if not _resume_safe(group):
+    except BaseException as error:
+        # an interruption keeps what a --resume can continue; unusable inputs do not
+        if isinstance(error, InputError) or not _resume_safe(group):
             tiles.abort_result_store(store)
         raise
 
@@ -403,7 +425,7 @@ def _resume_safe(group):
     """An interrupted run keeps its partial store when some tile finished, so that
     ``--resume`` can continue it; otherwise the partial store is removed."""
     try:
-        return bool(group["work/tile_done"][:].any())
+        return bool(_tile_done(group).any())
     except Exception:  # noqa: BLE001 - store already gone or unreadable
         return False
 

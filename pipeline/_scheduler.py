@@ -3,10 +3,12 @@
 ``--scheduler`` takes ``threads`` (default), ``processes``, ``synchronous``, a
 ``tcp://`` address of a dask.distributed scheduler, or the path of a scheduler
 file.  Local schedulers need no server.  Each worker thread runs one OpenCV
-thread (set in every task) so that tiles, not OpenCV, use the cores.
+thread (set in every task) so that tiles, not OpenCV, use the cores; see
+:func:`worker_setup`.
 """
 
 import contextlib
+import ctypes
 import logging
 import os
 import sys
@@ -23,11 +25,28 @@ SCHEDULERS = ("threads", "processes", "synchronous")
 log = logging.getLogger("rsmb")
 
 
-def one_cv_thread():
-    """Called at the start of every task: one OpenCV thread per worker thread."""
+_MMAP_THRESHOLD = 4 << 20
+_process_ready = False
+
+
+def worker_setup():
+    """Called at the start of every task: one OpenCV thread per worker thread,
+    and (once per process, glibc only) arrays of 4 MiB and more served by mmap.
+    glibc otherwise raises its mmap threshold as large blocks are freed and keeps
+    freed tile buffers in the heap, so the resident size crept up with the number
+    of tiles (8192^2: 606 MB peak, 418 MB with this; 2048^2: 448 and 381 MB)."""
+    global _process_ready
     import cv2
 
     cv2.setNumThreads(1)
+    if _process_ready:
+        return
+    _process_ready = True
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL("libc.so.6").mallopt(-3, _MMAP_THRESHOLD)  # -3: M_MMAP_THRESHOLD
+        except (OSError, AttributeError):  # not glibc
+            pass
 
 
 class _Progress:
@@ -86,7 +105,7 @@ class Runner:
 
 
 def _call(func, args):
-    one_cv_thread()
+    worker_setup()
     return func(*args)
 
 
@@ -116,7 +135,7 @@ def open_runner(scheduler="threads", *, workers=None):
 
         kw = {"address": scheduler} if scheduler.startswith("tcp://") else {"scheduler_file": scheduler}
         with Client(timeout="30s", **kw) as client:
-            client.run(one_cv_thread)
+            client.run(worker_setup)
             yield Runner("distributed", client=client)
         return
     raise ParameterError(f"scheduler: expected one of {SCHEDULERS}, a tcp:// address or a scheduler file, "

@@ -8,7 +8,7 @@ import numpy as np
 import zarr
 
 import ops
-from tiles import ingest_core, read_padded
+from tiles import ingest_core, read_clipped, read_padded, window_stats
 from tiles._stitch import TileLabels
 
 __all__ = []
@@ -23,20 +23,26 @@ def ingest_task(store, name, path, shape, tile):
     return ingest_core(path, shape, tile, _open(store)[name])
 
 
-def register_task(store, tile, camera, params, prior=None):
-    """Stage 1: register one tile and write its core outputs.
+def register_task(store, tile, camera, params, distorted_path, shape, prior=None):
+    """Stage 1: register one tile and write its core outputs.  The reference
+    window (core and halo) comes from the ingested store, the distorted core
+    straight from its file (a core is read once: ingesting it would only copy it).
+
+    The tile's summary row (histograms, gain, seconds, statistics of the
+    distorted core, and 1 in its last column) is written last: it marks the
+    tile complete for ``--resume``.
 
     Returns
     -------
     dict
-        Seconds spent and the tile's gain.
+        Seconds spent (read, kernel, write) and the tile's gain.
     """
     start = time.perf_counter()
     group = _open(store)
     ty, tx = tile.index
     h, w = tile.core_shape
     reference = read_padded(group["ingest/reference"], *tile.window)
-    distorted = group["ingest/distorted"][tile.core]
+    distorted = read_clipped(distorted_path, shape, *tile.core)
     read = time.perf_counter() - start
     ref_valid = np.isfinite(reference)
     dist_valid = np.isfinite(distorted)
@@ -47,14 +53,15 @@ def register_task(store, tile, camera, params, prior=None):
     score = np.abs(result.chi)
     residual = np.where(result.valid, distorted - result.registered, 0.0)
     hist = ops.score_histogram(residual, score, result.valid)
+    stats = window_stats(distorted)
     write_start = time.perf_counter()
     group["registered"][tile.core] = result.registered
     group["change_score"][tile.core] = score.astype(np.float32)
     group["work/tile_rows"][tile.core[0], tx] = np.concatenate(
         [result.trajectory, result.row_state[:, None]], axis=1).astype(np.float32)
     seconds = time.perf_counter() - start
-    group["work/tile_summary"][ty, tx] = np.concatenate([hist.residual, hist.score, [result.gain, seconds]])
-    group["work/tile_done"][ty, tx] = np.uint8(1)  # last: the tile is complete
+    group["work/tile_summary"][ty, tx] = np.concatenate(
+        [hist.residual, hist.score, [result.gain, seconds, stats.count, stats.low, stats.high, 1.0]])
     return {"index": tile.index, "seconds": seconds, "read_s": read, "write_s": time.perf_counter() - write_start,
             "kernel_s": write_start - start - read, "pixels": h * w, "gain": result.gain}
 
@@ -62,15 +69,13 @@ def register_task(store, tile, camera, params, prior=None):
 def label_task(store, tile, shape, threshold, change_params):
     """Stage 2: label the change candidates of one core (score read with the
     margin the local half-maximum test needs).  Returns (TileLabels, compute
-    seconds); the next two stages also return their compute seconds."""
+    seconds)."""
     group = _open(store)
-    pad = change_params.half_max_window // 2 + 1
-    r0, r1 = max(tile.core[0].start - pad, 0), min(tile.core[0].stop + pad, shape[0])
-    c0, c1 = max(tile.core[1].start - pad, 0), min(tile.core[1].stop + pad, shape[1])
-    score = group["change_score"][r0:r1, c0:c1]
+    window = tile.grown(change_params.half_max_window // 2 + 1, shape)
+    score = group["change_score"][window]
     start = time.perf_counter()
     candidates = ops.change_candidates(score, threshold, params=change_params)
-    core = (slice(tile.core[0].start - r0, tile.core[0].stop - r0), slice(tile.core[1].start - c0, tile.core[1].stop - c0))
+    core = _inside(tile.core, window)
     labels, area, peak = ops.label_components(candidates[core], score[core])
     compute = time.perf_counter() - start
     if len(area) > 1:  # unwritten chunks read as 0: a tile without candidates writes nothing
@@ -78,32 +83,37 @@ def label_task(store, tile, shape, threshold, change_params):
     return TileLabels.from_labels(tile.index, labels, area, peak), compute
 
 
-def mask_task(store, tile, keep, change_params):
-    """Stage 3: keep the labels of components that passed, fill small holes."""
-    if not keep.any():
-        return 0, 0.0  # change_mask reads 0 where nothing was written
-    group = _open(store)
-    labels = group["work/labels"][tile.core]
-    start = time.perf_counter()
-    mask = ops.fill_holes(keep[labels], params=change_params)
-    compute = time.perf_counter() - start
-    group["change_mask"][tile.core] = mask.astype(np.uint8)
-    return int(mask.sum()), compute
+def _inside(part, window):
+    """``part`` (slices in image coordinates) relative to ``window``."""
+    return tuple(slice(p.start - w.start, p.stop - w.start) for p, w in zip(part, window))
 
 
-def reference_mask_task(store, tile, shape, camera, axes, halo):
-    """Stage 4: the tile's changes in the reference grid, from the change mask of
-    its window and the fused trajectory."""
+def mask_task(store, tile, window, kept, trajectory, camera, axes, change_params):
+    """Stage 3: one tile's changes in both grids.  The kept labels of the tiles
+    under its window (core plus halo) make the window's mask, small holes are
+    filled there (a hole cut by a seam is filled like any other), the core is
+    written, and the window's mask carried by the fused ``trajectory`` (rows of
+    the window) gives the tile's changes in the reference grid.
+
+    ``kept`` lists (core, keep flags per local label) of the tiles under the
+    window that kept some label (tiles with none are not run: both masks read 0
+    where nothing was written).  Returns (changed core pixels, compute seconds).
+    """
     group = _open(store)
-    r0, r1 = max(tile.core[0].start - halo, 0), min(tile.core[0].stop + halo, shape[0])
-    c0, c1 = max(tile.core[1].start - halo, 0), min(tile.core[1].stop + halo, shape[1])
-    mask = group["change_mask"][r0:r1, c0:c1]
-    if not mask.any():
-        return 0, 0.0
-    trajectory = group["trajectory"][r0:r1].astype(np.float64)
+    labels = group["work/labels"][window]
     start = time.perf_counter()
+    mask = np.zeros(labels.shape, dtype=bool)
+    for core, keep in kept:
+        part = _inside(tuple(slice(max(c.start, w.start), min(c.stop, w.stop)) for c, w in zip(core, window)), window)
+        mask[part] = keep[labels[part]]
+    mask = ops.fill_holes(mask, params=change_params)
+    core_mask = mask[_inside(tile.core, window)]
     ref = ops.changes_to_reference(mask, trajectory, axes=axes, camera=camera, reference_shape=tile.core_shape,
-                                   reference_origin_yx=tile.core_origin, distorted_origin_yx=(r0, c0))
+                                   reference_origin_yx=tile.core_origin,
+                                   distorted_origin_yx=(window[0].start, window[1].start))
     compute = time.perf_counter() - start
-    group["change_mask_reference"][tile.core] = ref
-    return int(ref.sum()), compute
+    if core_mask.any():
+        group["change_mask"][tile.core] = core_mask.astype(np.uint8)
+    if ref.any():
+        group["change_mask_reference"][tile.core] = ref
+    return int(core_mask.sum()), compute

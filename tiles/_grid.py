@@ -40,6 +40,11 @@ class Tile:
     def window_origin(self):
         return (self.window[0].start, self.window[1].start)
 
+    def grown(self, margin, shape):
+        """The core grown by ``margin`` px on every side, clipped to an image of
+        ``shape``: a tuple of slices."""
+        return tuple(slice(max(c.start - margin, 0), min(c.stop + margin, n)) for c, n in zip(self.core, shape))
+
     def check_core(self, array):
         """Raise if ``array`` does not have this tile's core shape (the stitching
         guard: a tile writes exactly its core)."""
@@ -114,6 +119,19 @@ class TileGrid:
         h = self.halo
         window = (slice(int(r0) - h, int(r1) + h), slice(int(c0) - h, int(c1) + h))
         return Tile((ty, tx), core, window)
+
+    def covering(self, window):
+        """Indices of the tiles whose cores meet ``window`` (a tuple of slices
+        inside the image)."""
+        rows = self._span(self.row_edges, window[0])
+        cols = self._span(self.col_edges, window[1])
+        return [(ty, tx) for ty in rows for tx in cols]
+
+    @staticmethod
+    def _span(edges, window):
+        first = int(np.searchsorted(edges, window.start, side="right")) - 1
+        last = int(np.searchsorted(edges, window.stop - 1, side="right")) - 1
+        return range(max(first, 0), min(last, len(edges) - 2) + 1)
 
     def __iter__(self):
         ny, nx = self.grid_shape

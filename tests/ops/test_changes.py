@@ -215,6 +215,27 @@ def test_change_mask_fills_small_holes():
     assert mask[10:30, 10:30].all() and mask.sum() == 400
 
 
+def test_fill_holes_fills_only_small_enclosed_background():
+    from ops import fill_holes
+
+    mask = np.zeros((40, 60), bool)
+    mask[5:25, 5:25] = True
+    mask[8:11, 8:11] = False  # 9 px hole: filled
+    mask[12:22, 12:22] = False  # 100 px hole: kept
+    mask[15:17, 15:17] = True  # an island inside it: the hole is its 96 background px
+    mask[0:10, 40:50] = True
+    mask[0:3, 44:46] = False  # 6 px notch open to the border: not a hole
+    mask[30:36, 30:36] = True
+    mask[32, 30:36] = False  # a gap that cuts the square in two: not enclosed
+    out = fill_holes(mask, params=ChangeParams(min_area=20))
+    expected = mask.copy()
+    expected[8:11, 8:11] = True
+    np.testing.assert_array_equal(out, expected)
+    out = fill_holes(mask, params=ChangeParams(min_area=97))
+    expected[12:22, 12:22] = True  # 96 background px < 97
+    np.testing.assert_array_equal(out, expected)
+
+
 def test_change_mask_nan_score_is_no_change():
     score = np.full(SHAPE, np.nan, np.float32)
     score[10:20, 10:20] = 0.5

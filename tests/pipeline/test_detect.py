@@ -123,7 +123,7 @@ def _done_tiles(partial):
     import zarr
 
     try:
-        return int(zarr.open_group(str(partial), mode="r")["work/tile_done"][:].sum())
+        return int((zarr.open_group(str(partial), mode="r")["work/tile_summary"][..., -1] == 1).sum())
     except Exception:  # noqa: BLE001 - not created yet
         return 0
 
