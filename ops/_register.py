@@ -20,8 +20,15 @@ from ._camera import Camera, full_poses
 from ._errors import ParameterError
 from ._oracle import optimal_chi, solve_row_exact
 from ._posespace import PoseSpace
-from ._rowsolve import (_build_row, _gather_row, _propagate_rows, _row_step, _solve_huber_nn,
-                        _synthesize, _warp_into)
+from ._rowsolve import (
+    _build_row,
+    _gather_row,
+    _propagate_rows,
+    _row_step,
+    _solve_huber_nn,
+    _synthesize,
+    _warp_into,
+)
 
 __all__ = ["RegistrationParams", "Registration", "register"]
 

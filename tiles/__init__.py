@@ -2,7 +2,14 @@
 stores and the seam merge of per-tile labels."""
 
 from ._grid import Tile, TileGrid
-from ._ingest import WindowStats, check_stats, ingest_core, read_clipped, read_padded, window_stats
+from ._ingest import (
+    WindowStats,
+    check_stats,
+    ingest_core,
+    read_clipped,
+    read_padded,
+    window_stats,
+)
 from ._io import (
     GeoInfo,
     ImageInfo,
