@@ -232,7 +232,7 @@ def _peak_rss(cmd):
     return stdout, peak / 1e6, time.perf_counter() - start
 
 
-def bench_scale(workdir, *, sizes=(2048, 4096, 8192), tile=512):
+def bench_scale(workdir, *, sizes=(2048, 4096, 8192), tile=1024):
     out = {}
     for size in sizes:
         directory = Path(workdir, f"scale_{size}")
@@ -280,7 +280,7 @@ def bench_gain(workdir, *, size=2048, workers=None):
     return out
 
 
-def run_bench(*, sections=SECTIONS, data=None, quick=False, workdir=None, sizes=None, workers=None, tile=512):
+def run_bench(*, sections=SECTIONS, data=None, quick=False, workdir=None, sizes=None, workers=None, tile=1024):
     """Run the benchmark sections; returns a dict of results (also printed)."""
     data = Path(data) if data else None
     if data is not None and not data.exists():

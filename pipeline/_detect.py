@@ -64,7 +64,7 @@ class DetectConfig:
 
     registration: RegistrationParams = field(default_factory=RegistrationParams)
     changes: ChangeParams = field(default_factory=ChangeParams)
-    tile: int = 512
+    tile: int = 1024
     overlap: int | None = None
     focal: float | None = None
     agreement: float = 2.0
@@ -436,6 +436,6 @@ def _write_geotiffs(store, directory, ref_info, dist_info):
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     group = tiles.open_result_store(store)
-    tiles.write_geotiff(directory / "change_mask.tif", group["change_mask"][:], dist_info.geo)
-    tiles.write_geotiff(directory / "change_mask_reference.tif", group["change_mask_reference"][:], ref_info.geo)
-    tiles.write_geotiff(directory / "change_score.tif", group["change_score"][:], dist_info.geo)
+    tiles.write_geotiff(directory / "change_mask.tif", group["change_mask"], dist_info.geo)
+    tiles.write_geotiff(directory / "change_mask_reference.tif", group["change_mask_reference"], ref_info.geo)
+    tiles.write_geotiff(directory / "change_score.tif", group["change_score"], dist_info.geo)

@@ -483,8 +483,14 @@ def _sha256_file(path: str) -> str:
     return digest.hexdigest()
 
 
-def _sha256_array(array: np.ndarray) -> str:
-    return hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest()
+def _sha256_array(array) -> str:
+    """Digest of the C-order bytes of a numpy or zarr array, read by strips of
+    chunk rows (a zarr input is never loaded whole)."""
+    digest = hashlib.sha256()
+    step = max(int(getattr(array, "chunks", (256,))[0]), 1)
+    for r0 in range(0, array.shape[0], step):
+        digest.update(np.ascontiguousarray(array[r0:r0 + step]).tobytes())
+    return digest.hexdigest()
 
 
 def _check_content(data: np.ndarray, valid: np.ndarray, *, name: str) -> None:
@@ -620,6 +626,9 @@ def check_same_shape(reference: Raster, distorted: Raster) -> None:
         )
 
 
+_GEOTIFF_BLOCK = 256
+
+
 def write_geotiff(
     path: str | os.PathLike,
     array: np.ndarray,
@@ -633,8 +642,9 @@ def write_geotiff(
     ----------
     path : str or path-like
         Output file; overwritten if it exists.
-    array : ndarray, shape (H, W)
-        bool or uint8 (written as uint8) or floating (written as float32).
+    array : ndarray or zarr array, shape (H, W)
+        bool or uint8 (written as uint8) or floating (written as float32);
+        read and written in strips of 256 rows.
     geo : GeoInfo
         CRS and transform to record; may be empty (no georeferencing written).
         ``geo.nodata`` is not used: pass ``nodata`` explicitly.
@@ -655,28 +665,31 @@ def write_geotiff(
     from rasterio.crs import CRS
     from rasterio.errors import NotGeoreferencedWarning
     from rasterio.transform import Affine
+    from rasterio.windows import Window
 
-    array = np.asarray(array)
-    if array.ndim != 2:
-        raise ParameterError(f"array: expected shape (H, W), got {array.shape}")
-    if array.dtype.kind == "b" or array.dtype == np.uint8:
-        array = array.astype(np.uint8, copy=False)
-    elif array.dtype.kind == "f":
-        array = array.astype(np.float32, copy=False)
+    if not hasattr(array, "dtype"):
+        array = np.asarray(array)
+    if len(array.shape) != 2:
+        raise ParameterError(f"array: expected shape (H, W), got {tuple(array.shape)}")
+    dtype = np.dtype(array.dtype)
+    if dtype.kind == "b" or dtype == np.uint8:
+        dtype = np.dtype(np.uint8)
+    elif dtype.kind == "f":
+        dtype = np.dtype(np.float32)
     else:
         raise ParameterError(
-            f"array: expected dtype bool, uint8 or floating, got {array.dtype}"
+            f"array: expected dtype bool, uint8 or floating, got {dtype}"
         )
     profile: dict[str, Any] = {
         "driver": "GTiff",
         "height": array.shape[0],
         "width": array.shape[1],
         "count": 1,
-        "dtype": array.dtype.name,
+        "dtype": dtype.name,
         "compress": "deflate",
         "tiled": True,
-        "blockxsize": 256,
-        "blockysize": 256,
+        "blockxsize": _GEOTIFF_BLOCK,
+        "blockysize": _GEOTIFF_BLOCK,
     }
     if geo.crs is not None:
         profile["crs"] = CRS.from_user_input(geo.crs)
@@ -688,7 +701,10 @@ def write_geotiff(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
         with rasterio.open(out, "w", **profile) as ds:
-            ds.write(array, 1)
+            # strips of one block row: a zarr array is never read whole
+            for r0 in range(0, array.shape[0], _GEOTIFF_BLOCK):
+                strip = np.asarray(array[r0:r0 + _GEOTIFF_BLOCK]).astype(dtype, copy=False)
+                ds.write(strip, 1, window=Window(0, r0, strip.shape[1], strip.shape[0]))
     return out
 
 
@@ -735,7 +751,7 @@ def probe_image(path: str | os.PathLike) -> ImageInfo:
         zarray = _open_zarr_array(name)
         _check_2d_nonempty(zarray.shape, name=name)
         shape, geo = zarray.shape[:2], _zarr_geo(zarray, name=name)
-        sha = _sha256_array(np.asarray(zarray[...]))
+        sha = _sha256_array(zarray)
     if 0 in shape:
         raise InputError(f"{name}: is empty (shape {tuple(shape)})")
     return ImageInfo(name, (int(shape[0]), int(shape[1])), geo, sha)
