@@ -232,14 +232,16 @@ def _peak_rss(cmd):
     return stdout, peak / 1e6, time.perf_counter() - start
 
 
-def bench_scale(workdir, *, sizes=(2048, 4096, 8192), tile=1024):
+def bench_scale(workdir, *, sizes=(2048, 4096, 8192), tile=None):
     out = {}
     for size in sizes:
         directory = Path(workdir, f"scale_{size}")
         _pair_files(directory, size, changes=max(8, size * size // 100000))
         store = Path(workdir, f"scale_{size}.zarr")
         cmd = [sys.executable, "-m", "pipeline.cli", "-q", "detect", str(directory / "reference.tif"),
-               str(directory / "distorted.tif"), "-o", str(store), "--tile-size", str(tile), "--overwrite", "--json"]
+               str(directory / "distorted.tif"), "-o", str(store), "--overwrite", "--json"]
+        if tile:
+            cmd += ["--tile-size", str(tile)]
         stdout, peak, wall = _peak_rss(cmd)
         s = json.loads(stdout)
         t = s["timings"]
@@ -280,7 +282,7 @@ def bench_gain(workdir, *, size=2048, workers=None):
     return out
 
 
-def run_bench(*, sections=SECTIONS, data=None, quick=False, workdir=None, sizes=None, workers=None, tile=1024):
+def run_bench(*, sections=SECTIONS, data=None, quick=False, workdir=None, sizes=None, workers=None, tile=None):
     """Run the benchmark sections; returns a dict of results (also printed)."""
     data = Path(data) if data else None
     if data is not None and not data.exists():

@@ -23,7 +23,7 @@ __all__ = ["run_demo"]
 log = logging.getLogger("rsmb")
 
 
-def run_demo(out_dir="rsmb-demo", *, size=2048, tile=512, changes=40, seed=0, scheduler="threads", workers=None,
+def run_demo(out_dir="rsmb-demo", *, size=2048, tile=None, changes=40, seed=0, scheduler="threads", workers=None,
              overwrite=False):
     """Run the demo into ``out_dir``; returns a dict with the paths and scores.
 

@@ -34,7 +34,7 @@ from ops import ChangeParams, InputError, RegistrationParams
 from . import _tasks
 from ._scheduler import open_runner
 
-__all__ = ["DetectConfig", "detect", "default_overlap", "VERSION"]
+__all__ = ["DetectConfig", "detect", "default_overlap", "default_tile", "VERSION"]
 
 VERSION = "0.1.0"
 log = logging.getLogger("rsmb")
@@ -48,8 +48,8 @@ class DetectConfig:
     ----------
     registration : RegistrationParams
     changes : ChangeParams
-    tile : int
-        Core tile side in pixels.
+    tile : int or None
+        Core tile side in pixels; None picks :func:`default_tile`.
     overlap : int or None
         Halo in pixels; None derives it from the search range (see
         :func:`default_overlap`).
@@ -64,10 +64,19 @@ class DetectConfig:
 
     registration: RegistrationParams = field(default_factory=RegistrationParams)
     changes: ChangeParams = field(default_factory=ChangeParams)
-    tile: int = 1024
+    tile: int | None = None
     overlap: int | None = None
     focal: float | None = None
     agreement: float = 2.0
+
+
+def default_tile(shape):
+    """1024-px tiles when the image holds at least 4 x 4 of them, else 512: large
+    tiles pay the per-tile start (wide search, start block) and I/O less often
+    (8192^2: 0.82 against 0.57 MP/s), small ones keep both cores busy on small
+    images (2048^2 in four tiles leaves a core idle while the slowest finishes).
+    Depends on the shape only, so a ``--resume`` finds the same grid."""
+    return 1024 if min(shape) >= 4 * 1024 else 512
 
 
 def default_overlap(params, camera, shape):
@@ -286,7 +295,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
     camera = ops.Camera.for_shape(shape, focal=config.focal)
     params = config.registration.resolved(camera)
     halo = config.overlap if config.overlap is not None else default_overlap(params, camera, shape)
-    grid = tiles.TileGrid(shape, config.tile, halo)
+    grid = tiles.TileGrid(shape, config.tile or default_tile(shape), halo)
     axes = params.axes
     key = _run_key(ref_info, dist_info, config, grid)
     group = tiles.create_result_store(output, _specs(grid, len(axes)), {"run_key": key}, overwrite=overwrite,

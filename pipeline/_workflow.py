@@ -98,7 +98,7 @@ def _run_detect(options, defaults, scheduler, overwrite):
                           text("search", None), o.get("shutter", "rolling"), o.get("solver", "fast"),
                           float(o.get("lambda_w", 1e-3)), float(o.get("lambda_chi", 0.02)),
                           str(o.get("threshold", "noise")), int(o.get("min_area", 20)), o.get("focal"),
-                          int(o.get("tile_size", 512)), o.get("overlap"))
+                          int(o["tile_size"]) if o.get("tile_size") else None, o.get("overlap"))
     return detect(o["reference"], o["distorted"], o["output"], config=config, scheduler=scheduler,
                   workers=o.get("workers"), overwrite=overwrite, resume=bool(o.get("resume", False)),
                   geotiff=o.get("geotiff"))

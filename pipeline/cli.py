@@ -76,7 +76,7 @@ def registration_options(func):
 
 
 def build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold, min_area,
-                 focal, tile=1024, overlap=None):
+                 focal, tile=None, overlap=None):
     """A :class:`pipeline.DetectConfig` from command-line values."""
     from ._detect import DetectConfig
 
@@ -122,7 +122,8 @@ def _quiet_library_warnings():
 @click.argument("distorted", type=click.Path(dir_okay=True))
 @click.option("-o", "--output", required=True, type=click.Path(), help="Output zarr store.")
 @registration_options
-@click.option("--tile-size", type=int, default=1024, show_default=True, help="Core tile side, pixels.")
+@click.option("--tile-size", type=int, default=None,
+              help="Core tile side, pixels [default: 1024 if the image holds 4 x 4 such tiles, else 512].")
 @click.option("--overlap", type=int, default=None,
               help="Tile halo, pixels. Default: the largest displacement the search range allows.")
 @click.option("--scheduler", default="threads", show_default=True,
@@ -218,7 +219,7 @@ def evaluate(store, truth_dir, as_json):
 @click.option("--quick", is_flag=True, help="Small sizes: a smoke run in about a minute.")
 @click.option("--sizes", default=None, help="Image sides of the scale section, e.g. 2048,4096,8192.")
 @click.option("--workers", type=int, default=None, help="Local worker threads (default: one per core).")
-@click.option("--tile-size", type=int, default=1024, show_default=True, help="Tile side of the scale section.")
+@click.option("--tile-size", type=int, default=None, help="Tile side of the scale section [default: detect's].")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None, help="Also write results here.")
 def bench(sections, data, quick, sizes, workers, tile_size, json_path):
     """Measure accuracy against the cvxpy oracle, speed, memory and real captures."""
@@ -239,8 +240,7 @@ def bench(sections, data, quick, sizes, workers, tile_size, json_path):
 @click.option("-o", "--output", "out_dir", default="rsmb-demo", show_default=True, type=click.Path(file_okay=False),
               help="Directory for the demo's inputs, store, GeoTIFFs and report.")
 @click.option("--size", type=int, default=2048, show_default=True, help="Side of the demo scene, pixels.")
-@click.option("--tile-size", type=int, default=512, show_default=True,
-              help="Core tile side (below detect's default, so that the scene shows seams and a tile grid).")
+@click.option("--tile-size", type=int, default=None, help="Core tile side [default: detect's].")
 @click.option("--scheduler", default="threads", show_default=True)
 @click.option("--overwrite", is_flag=True, help="Replace a previous demo in the directory.")
 def demo(out_dir, size, tile_size, scheduler, overwrite):
