@@ -95,6 +95,17 @@ def default_overlap(params, camera, shape):
     return int(np.ceil(reach + 3 * hw)) + 8
 
 
+def _expected_cost(tile, camera):
+    """Relative registration cost of a tile: its area times the distance of its
+    farthest pixel from the principal point (rotation moves far pixels more, so
+    their neighbourhoods and blur are larger: corner tiles run about three times
+    longer than central ones).  The longest tiles are started first."""
+    (r0, r1), (c0, c1) = [(s.start, s.stop) for s in tile.core]
+    far = np.hypot(max(abs(c0 - camera.center_xy[0]), abs(c1 - camera.center_xy[0])),
+                   max(abs(r0 - camera.center_xy[1]), abs(r1 - camera.center_xy[1])))
+    return (r1 - r0) * (c1 - c0) * far
+
+
 def _run_key(ref_info, dist_info, config, grid):
     text = json.dumps(tiles.jsonable({"reference": ref_info.sha256, "distorted": dist_info.sha256,
                                       "config": config, "grid": [grid.shape, grid.tile, grid.halo],
@@ -314,7 +325,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
 
             t0 = time.perf_counter()
             done = _tile_done(group)
-            todo = [t for t in grid if not done[t.index]]
+            todo = sorted((t for t in grid if not done[t.index]), key=lambda t: -_expected_cost(t, camera))
             if resume:
                 log.info("resume: %d of %d tiles already registered", len(grid) - len(todo), len(grid))
             stats = runner.map("register", _tasks.register_task, [(store, t, camera, params, dist_info.path, shape) for t in todo])

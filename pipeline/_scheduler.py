@@ -85,20 +85,27 @@ class Runner:
         self.tasks_run = 0
 
     def map(self, label, func, argument_lists):
-        """``[func(*args) for args in argument_lists]`` on the scheduler, in order."""
+        """``[func(*args) for args in argument_lists]`` on the scheduler; results
+        in order, and tasks started in the order of the list as far as the
+        scheduler allows (callers put the longest first, so that no core idles
+        at the end while one long task finishes)."""
         argument_lists = list(argument_lists)
         if not argument_lists:
             return []
-        self.tasks_run += len(argument_lists)
-        progress = _Progress(label, len(argument_lists))
+        n = len(argument_lists)
+        self.tasks_run += n
+        progress = _Progress(label, n)
         if self.client is not None:
             from distributed import as_completed
 
-            futures = [self.client.submit(_call, func, args, pure=False) for args in argument_lists]
+            futures = [self.client.submit(_call, func, args, pure=False, priority=n - i)
+                       for i, args in enumerate(argument_lists)]
             for _ in as_completed(futures):
                 progress.step()
             return self.client.gather(futures)
-        tasks = [dask.delayed(_call, pure=False)(func, args) for args in argument_lists]
+        # dask's local schedulers start independent tasks in descending key order
+        tasks = [dask.delayed(_call, pure=False)(func, args, dask_key_name=f"{label}-{n - i:08d}")
+                 for i, args in enumerate(argument_lists)]
         with _DaskProgress(progress):
             kw = {"num_workers": self.workers} if self.workers and self.scheduler != "synchronous" else {}
             return list(dask.compute(*tasks, scheduler=self.scheduler, **kw))
