@@ -2,10 +2,9 @@
 
 Stages (one task per tile each, see :mod:`pipeline._tasks`):
 
-1. ingest the reference into the store, chunked by tile (a tile task reads
-   its core and halo: at most nine chunks);
-2. register every tile, its distorted core read from the input file
-   (resumable: finished tiles are marked in the store);
+1. ingest both images into the store, chunked by tile (a tile task reads its
+   core and halo: at most nine chunks);
+2. register every tile (resumable: finished tiles are marked in the store);
 3. fuse the per-row trajectories of tiles sharing rows, re-solve tiles whose
    path disagrees with their band's around the others' path;
 4. one change threshold for the whole image from summed tile histograms;
@@ -135,12 +134,12 @@ def _specs(grid, dims):
                                   compressed=False),
         "work/labels": spec((h, w), "int32", (t, t), ("y", "x"), compressed=False),
         "ingest/reference": spec((h, w), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
+        "ingest/distorted": spec((h, w), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
     }
 
 
 _HIST = (ops.RESIDUAL_BINS, ops.SCORE_BINS)
-# per tile: both histograms, gain, seconds, distorted core's valid count, low, high; 1 when done
-_SUMMARY = sum(_HIST) + 6
+_SUMMARY = sum(_HIST) + 3  # per tile: both histograms, gain, seconds; 1 when done
 
 
 def _tile_results(group):
@@ -152,19 +151,13 @@ def _tile_results(group):
     hist = ops.ScoreHistogram(summary[..., :_HIST[0]].sum((0, 1)).astype(np.int64),
                               summary[..., _HIST[0]:sum(_HIST)].sum((0, 1)).astype(np.int64))
     states = np.nan_to_num(rows[..., -1]).astype(np.uint8)
-    return rows[..., :-1].astype(np.float64), states, hist, summary[..., :_HIST[0]], summary[..., -6]
+    return rows[..., :-1].astype(np.float64), states, hist, summary[..., :_HIST[0]], summary[..., -3]
 
 
 def _tile_done(group):
     """(ny, nx) bool: tiles whose registration finished."""
     return group["work/tile_summary"][..., -1] == 1
 
-
-def _distorted_stats(group):
-    """Statistics of the distorted image's valid pixels, from the tile summaries."""
-    summary = group["work/tile_summary"][:]
-    return sum((tiles.WindowStats(int(c), lo, hi) for c, lo, hi in summary[..., -4:-1].reshape(-1, 3)),
-               tiles.WindowStats(0, np.inf, -np.inf))
 
 
 def _row_end_points(tile):
@@ -248,15 +241,16 @@ def _outliers(worst, residual_level, tolerance):
     return out
 
 
-def _ingest(runner, group, store, ref_info, grid):
-    """The reference into the store, chunked by tile (a tile reads its window
-    from there; the distorted cores are read from their file by the tiles)."""
+def _ingest(runner, group, store, ref_info, dist_info, grid):
     if group.attrs.get("ingest_complete"):
         log.info("ingest: already complete (resume)")
         return
     args = [(store, "ingest/reference", ref_info.path, ref_info.shape, t) for t in grid]
-    stats_ref = runner.map("ingest", _tasks.ingest_task, args)
+    stats_ref = runner.map("ingest ref", _tasks.ingest_task, args)
+    args = [(store, "ingest/distorted", dist_info.path, dist_info.shape, t) for t in grid]
+    stats_dist = runner.map("ingest dist", _tasks.ingest_task, args)
     tiles.check_stats(sum(stats_ref[1:], stats_ref[0]), ref_info.path)
+    tiles.check_stats(sum(stats_dist[1:], stats_dist[0]), dist_info.path)
     group.attrs["ingest_complete"] = True
 
 
@@ -320,7 +314,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", dist_info.path, shape[0],
                      shape[1], len(grid), grid.tile, grid.halo, scheduler)
             t0 = time.perf_counter()
-            _ingest(runner, group, store, ref_info, grid)
+            _ingest(runner, group, store, ref_info, dist_info, grid)
             timings["ingest_s"] = time.perf_counter() - t0
 
             t0 = time.perf_counter()
@@ -328,7 +322,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             todo = sorted((t for t in grid if not done[t.index]), key=lambda t: -_expected_cost(t, camera))
             if resume:
                 log.info("resume: %d of %d tiles already registered", len(grid) - len(todo), len(grid))
-            stats = runner.map("register", _tasks.register_task, [(store, t, camera, params, dist_info.path, shape) for t in todo])
+            stats = runner.map("register", _tasks.register_task, [(store, t, camera, params) for t in todo])
             timings["register_s"] = time.perf_counter() - t0
             timings["tiles_registered"] = len(todo)
             if stats:
@@ -337,7 +331,6 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                 timings["write_s_sum"] = float(sum(s["write_s"] for s in stats))
 
             t0 = time.perf_counter()
-            tiles.check_stats(_distorted_stats(group), dist_info.path)
             paths, states, hist, residual_hists, gains = _tile_results(group)
             fused, agree, worst = _agreement(paths, states, grid, camera, axes)
             resolve = _outliers(worst, ops.residual_median(residual_hists), config.agreement)
@@ -349,7 +342,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                     rows = tile.core[0]
                     others = np.delete(paths[rows], tx, axis=1)
                     prior = _fuse(others, np.delete(states[rows], tx, axis=1))
-                    args.append((store, tile, camera, params, dist_info.path, shape, prior))
+                    args.append((store, tile, camera, params, prior))
                 runner.map("re-solve", _tasks.register_task, args)
                 paths, states, hist, _, gains = _tile_results(group)
                 fused, agree, worst = _agreement(paths, states, grid, camera, axes)

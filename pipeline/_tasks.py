@@ -8,7 +8,7 @@ import numpy as np
 import zarr
 
 import ops
-from tiles import ingest_core, read_clipped, read_padded, window_stats
+from tiles import ingest_core, read_padded
 from tiles._stitch import TileLabels
 
 __all__ = []
@@ -23,14 +23,10 @@ def ingest_task(store, name, path, shape, tile):
     return ingest_core(path, shape, tile, _open(store)[name])
 
 
-def register_task(store, tile, camera, params, distorted_path, shape, prior=None):
-    """Stage 1: register one tile and write its core outputs.  The reference
-    window (core and halo) comes from the ingested store, the distorted core
-    straight from its file (a core is read once: ingesting it would only copy it).
-
-    The tile's summary row (histograms, gain, seconds, statistics of the
-    distorted core, and 1 in its last column) is written last: it marks the
-    tile complete for ``--resume``.
+def register_task(store, tile, camera, params, prior=None):
+    """Stage 1: register one tile and write its core outputs.  The tile's
+    summary row (histograms, gain, seconds, and 1 in its last column) is written
+    last: it marks the tile complete for ``--resume``.
 
     Returns
     -------
@@ -42,7 +38,7 @@ def register_task(store, tile, camera, params, distorted_path, shape, prior=None
     ty, tx = tile.index
     h, w = tile.core_shape
     reference = read_padded(group["ingest/reference"], *tile.window)
-    distorted = read_clipped(distorted_path, shape, *tile.core)
+    distorted = group["ingest/distorted"][tile.core]
     read = time.perf_counter() - start
     ref_valid = np.isfinite(reference)
     dist_valid = np.isfinite(distorted)
@@ -53,7 +49,6 @@ def register_task(store, tile, camera, params, distorted_path, shape, prior=None
     score = np.abs(result.chi)
     residual = np.where(result.valid, distorted - result.registered, 0.0)
     hist = ops.score_histogram(residual, score, result.valid)
-    stats = window_stats(distorted)
     write_start = time.perf_counter()
     group["registered"][tile.core] = result.registered
     group["change_score"][tile.core] = score.astype(np.float32)
@@ -61,7 +56,7 @@ def register_task(store, tile, camera, params, distorted_path, shape, prior=None
         [result.trajectory, result.row_state[:, None]], axis=1).astype(np.float32)
     seconds = time.perf_counter() - start
     group["work/tile_summary"][ty, tx] = np.concatenate(
-        [hist.residual, hist.score, [result.gain, seconds, stats.count, stats.low, stats.high, 1.0]])
+        [hist.residual, hist.score, [result.gain, seconds, 1.0]])
     return {"index": tile.index, "seconds": seconds, "read_s": read, "write_s": time.perf_counter() - write_start,
             "kernel_s": write_start - start - read, "pixels": h * w, "gain": result.gain}
 

@@ -2,14 +2,7 @@
 stores and the seam merge of per-tile labels."""
 
 from ._grid import Tile, TileGrid
-from ._ingest import (
-    WindowStats,
-    check_stats,
-    ingest_core,
-    read_clipped,
-    read_padded,
-    window_stats,
-)
+from ._ingest import WindowStats, check_stats, ingest_core, read_padded
 from ._io import (
     GeoInfo,
     ImageInfo,
@@ -39,9 +32,7 @@ __all__ = [
     "WindowStats",
     "check_stats",
     "ingest_core",
-    "read_clipped",
     "read_padded",
-    "window_stats",
     "GeoInfo",
     "ImageInfo",
     "Raster",

@@ -21,7 +21,7 @@ from ops import InputError
 
 from ._io import read_window
 
-__all__ = ["ingest_core", "read_clipped", "read_padded", "check_stats", "window_stats", "WindowStats"]
+__all__ = ["ingest_core", "read_padded", "check_stats", "WindowStats"]
 
 
 @dataclass(frozen=True)
@@ -40,7 +40,7 @@ class WindowStats:
         return WindowStats(self.count + other.count, min(self.low, other.low), max(self.high, other.high))
 
 
-def read_clipped(path, shape, rows, cols):
+def _read_clipped(path, shape, rows, cols):
     """Window (rows, cols) of the image, NaN where nodata or beyond the image."""
     out = np.full((rows.stop - rows.start, cols.stop - cols.start), np.nan, dtype=np.float32)
     r0, r1 = max(rows.start, 0), min(rows.stop, shape[0])
@@ -52,8 +52,7 @@ def read_clipped(path, shape, rows, cols):
     return out
 
 
-def window_stats(data):
-    """:class:`WindowStats` of an array with NaN at nodata."""
+def _stats(data):
     values = data[np.isfinite(data)]
     if values.size == 0:
         return WindowStats(0, np.inf, -np.inf)
@@ -74,9 +73,9 @@ def read_padded(array, rows, cols):
 def ingest_core(path, shape, tile, array):
     """Write ``tile``'s core of the image at ``path`` into ``array`` (H, W).
     Returns :class:`WindowStats` of the core."""
-    data = read_clipped(path, shape, *tile.core)
+    data = _read_clipped(path, shape, *tile.core)
     array[tile.core] = data
-    return window_stats(data)
+    return _stats(data)
 
 
 def check_stats(stats, path):
