@@ -548,6 +548,39 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
         ref[~np.asarray(reference_valid, bool)] = np.nan
     dist = np.asarray(distorted, dtype=np.float32)
     dvalid = np.ones(dist.shape, bool) if distorted_valid is None else np.asarray(distorted_valid, bool)
+    if prior is not None:
+        prior = np.asarray(prior, dtype=np.float64)
+        if prior.shape != (dist.shape[0], len(params.axes)):
+            raise ParameterError(f"prior: expected shape {(dist.shape[0], len(params.axes))}, got {prior.shape}")
+    args = (camera, params, reference_origin_yx, distorted_origin_yx, prior)
+    # eq. 13 has one gain per row: a gain changing along the rows by more than a
+    # few per cent biases the poses, so such a slope is divided out of the capture
+    # before the rows are solved (first guessed from column brightness, then fitted
+    # to the registration, which is solved once more while the fit still moves
+    # the row ends by more than GAIN_SLOPE_RESOLVE)
+    factor = _column_gain_guess(ref, dist, dvalid, reference_origin_yx, distorted_origin_yx) \
+        if params.gain_slope else None
+    timings = {"coarse_search_s": 0.0, "rows_s": 0.0}
+    for _ in range(3):
+        scaled = dist if factor is None else dist / factor
+        out, delta, spent = _solve_rows(ref, scaled, dvalid, *args)
+        timings = {k: timings[k] + spent[k] for k in timings}
+        more = _gain_slope(out, scaled, delta) if params.gain_slope else None
+        if more is not None:
+            factor = more if factor is None else factor * more
+        if more is None or np.abs(more - 1.0).max() <= GAIN_SLOPE_RESOLVE:
+            break
+    if factor is not None:
+        _fold_gain(out, dist, factor, delta)
+    return Registration(out.registered, out.chi, out.valid, out.trajectory, out.row_gain, out.row_state,
+                        params.axes, timings)
+
+
+GAIN_SLOPE_RESOLVE = 0.05  # relative gain change at the row ends that triggers a second solve
+
+
+def _solve_rows(ref, dist, dvalid, camera, params, reference_origin_yx, distorted_origin_yx, prior):
+    """Every row of ``dist`` against ``ref`` (eq. 13): outputs, the Huber delta, timings."""
     row_pad = int(np.ceil(3 * max([params.half_width[d] for d, a in enumerate(params.axes) if a == "ty"] + [0])))
     problem = _RowProblem(ref, dist, dvalid, camera, reference_origin_yx, distorted_origin_yx, params.axes,
                           params.step, _shift_margin(params, prior), row_pad + 4)
@@ -563,28 +596,55 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
     candidates = _coarse_search(problem, params, band) if prior is None else None
     t1 = time.perf_counter()
     if prior is not None:
-        prior = np.asarray(prior, dtype=np.float64)
-        if prior.shape != (height, len(params.axes)):
-            raise ParameterError(f"prior: expected shape {(height, len(params.axes))}, got {prior.shape}")
         _register_prior(solver, prior, informative, out)
     elif params.shutter == "global":
         _register_global(solver, candidates, informative, out)
     else:
         _register_rolling(solver, candidates, informative, mid, out)
-    if params.gain_slope:
-        _apply_gain_slope(out, dist, solver.delta)
-    t2 = time.perf_counter()
-    timings = {"coarse_search_s": t1 - t0, "rows_s": t2 - t1}
-    return Registration(out.registered, out.chi, out.valid, out.trajectory, out.row_gain, out.row_state,
-                        params.axes, timings)
+    return out, solver.delta, {"coarse_search_s": t1 - t0, "rows_s": time.perf_counter() - t1}
 
 
-def _apply_gain_slope(out, dist, delta, iterations=8):
-    """Fit ``g = R (1 + b u)`` with u the column offset from the window centre by
-    iteratively reweighted Huber regression and fold it into the outputs."""
+def _column_gain_guess(ref, dist, dvalid, ref_origin, dist_origin, blocks=16):
+    """A first guess of the gain slope along the rows from the median brightness
+    of column blocks of the capture against the same columns of the reference
+    (motion moves content far less than a block; a robust line through the
+    block ratios): the factor ``1 + b u`` per
+    column when it moves the row ends by more than GAIN_SLOPE_RESOLVE, else None."""
+    height, width = dist.shape
+    dy, dx = dist_origin[0] - ref_origin[0], dist_origin[1] - ref_origin[1]
+    if width < 4 * blocks or dy < 0 or dx < 0:
+        return None
+    same = ref[dy:dy + height, dx:dx + width]
+    if same.shape != dist.shape:
+        return None
+    edges = np.linspace(0, width, blocks + 1).astype(int)
+    u, ratio = [], []
+    for c0, c1 in zip(edges[:-1], edges[1:]):
+        d, r = dist[:, c0:c1][dvalid[:, c0:c1]], same[:, c0:c1]
+        r = r[np.isfinite(r)]
+        if d.size > 100 and r.size > 100 and np.median(r) > 0:
+            u.append((c0 + c1 - 1) / 2.0 - (width - 1) / 2.0)
+            ratio.append(np.median(d) / np.median(r))
+    if len(u) < 4:
+        return None
+    # Theil-Sen line: blocks holding changed objects are outvoted
+    u, ratio = np.array(u), np.array(ratio)
+    i, j = np.triu_indices(len(u), 1)
+    slope = float(np.median((ratio[j] - ratio[i]) / (u[j] - u[i])))
+    level = float(np.median(ratio - slope * u))
+    factor = 1.0 + slope / level * (np.arange(width) - (width - 1) / 2.0)
+    if level <= 0 or factor.min() <= 0.25 or np.abs(factor - 1.0).max() <= GAIN_SLOPE_RESOLVE:
+        return None
+    return factor
+
+
+def _gain_slope(out, dist, delta, iterations=8):
+    """Fit ``g = R (1 + b u)`` (u the column offset from the window centre) by
+    iteratively reweighted Huber regression: the factor ``1 + b u`` per column,
+    or None without enough pixels or for a slope that would flip the sign."""
     valid = out.valid & np.isfinite(out.registered)
     if valid.sum() < 100:
-        return
+        return None
     width = dist.shape[1]
     u = (np.arange(width) - (width - 1) / 2.0)[None, :] * np.ones((dist.shape[0], 1))
     sample = valid.copy()
@@ -598,9 +658,16 @@ def _apply_gain_slope(out, dist, delta, iterations=8):
         wts = np.minimum(1.0, delta / np.maximum(np.abs(r), 1e-12))
         den = float(np.sum(wts * z * z))
         if den <= 0:
-            return
+            return None
         b = float(np.sum(wts * z * y)) / den
-    factor = 1.0 + b * u
+    factor = 1.0 + b * u[0]
+    return factor if factor.min() > 0.25 else None
+
+
+def _fold_gain(out, dist, factor, delta):
+    """Multiply the registered image by the per-column gain ``factor`` and
+    recompute the change term."""
+    valid = out.valid & np.isfinite(out.registered)
     out.registered = np.where(valid, out.registered * factor, out.registered).astype(np.float32)
     r = dist - out.registered
     out.chi = optimal_chi(np.where(valid, r, 0.0), lambda_chi=2 * delta).astype(np.float32)

@@ -87,6 +87,17 @@ def test_gain_recovered(gain):
     assert counts.f_measure >= 0.9, counts.as_dict()
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_gain_ramp_along_the_rows(seed):
+    # the gain goes from 0.75 to 1.25 across every row (one gain per row in eq. 13):
+    # the fitted slope is divided out and the rows solved again
+    pair = ops.synthesize_pair((256, 256), motion="inplane", gain=(0.75, 1.25), changes=8, noise=0.002, seed=seed)
+    reg, changes = _run(pair, _params())
+    assert abs(reg.gain - 1.0) <= 0.03
+    counts = ops.confusion(changes.mask, pair.change_mask)
+    assert counts.f_measure >= 0.9, counts.as_dict()
+
+
 def test_rsmb_defaults_handle_rolling_shutter_without_blur():
     pair = ops.synthesize_pair((256, 256), motion="wobble", exposure=0.0, changes=6, noise=0.002, seed=4)
     reg, changes = _run(pair, ops.RegistrationParams())
