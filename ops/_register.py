@@ -554,29 +554,34 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
             raise ParameterError(f"prior: expected shape {(dist.shape[0], len(params.axes))}, got {prior.shape}")
     args = (camera, params, reference_origin_yx, distorted_origin_yx, prior)
     # eq. 13 has one gain per row: a gain changing along the rows by more than a
-    # few per cent biases the poses, so such a slope is divided out of the capture
-    # before the rows are solved (first guessed from column brightness, then fitted
-    # to the registration, which is solved once more while the fit still moves
-    # the row ends by more than GAIN_SLOPE_RESOLVE)
-    factor = _column_gain_guess(ref, dist, dvalid, reference_origin_yx, distorted_origin_yx) \
-        if params.gain_slope else None
+    # few per cent biases the poses, so a slope fitted to the registration is
+    # divided out of the capture and the rows are solved again (at most twice)
+    factor, scaled = None, dist
     timings = {"coarse_search_s": 0.0, "rows_s": 0.0}
-    for _ in range(3):
-        scaled = dist if factor is None else dist / factor
+    for attempt in range(3):
         out, delta, spent = _solve_rows(ref, scaled, dvalid, *args)
         timings = {k: timings[k] + spent[k] for k in timings}
         more = _gain_slope(out, scaled, delta) if params.gain_slope else None
-        if more is not None:
-            factor = more if factor is None else factor * more
-        if more is None or np.abs(more - 1.0).max() <= GAIN_SLOPE_RESOLVE:
+        if more is None:
             break
+        resolve = np.abs(more - 1.0).max() > GAIN_SLOPE_RESOLVE
+        if resolve and attempt == 0:
+            # a fit after a biased solve falls short of the slope; column-block
+            # brightness is the better first estimate when it agrees and is larger
+            guess = _column_gain_guess(ref, dist, dvalid, reference_origin_yx, distorted_origin_yx)
+            if guess is not None and (guess[-1] - guess[0]) / (more[-1] - more[0]) > 1.0:
+                more = guess
+        factor = more if factor is None else factor * more
+        if not resolve:
+            break
+        scaled = dist / factor
     if factor is not None:
         _fold_gain(out, dist, factor, delta)
     return Registration(out.registered, out.chi, out.valid, out.trajectory, out.row_gain, out.row_state,
                         params.axes, timings)
 
 
-GAIN_SLOPE_RESOLVE = 0.05  # relative gain change at the row ends that triggers a second solve
+GAIN_SLOPE_RESOLVE = 0.05  # relative gain change at the row ends that triggers another solve
 
 
 def _solve_rows(ref, dist, dvalid, camera, params, reference_origin_yx, distorted_origin_yx, prior):

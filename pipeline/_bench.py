@@ -253,7 +253,7 @@ def bench_scale(workdir, *, sizes=(2048, 4096, 8192), tile=None):
         out[size] = {"peak_rss_mb": peak, "megapixels_per_s": s["megapixels_per_s"],
                      "kernel_megapixels_per_s": kernel_rate, "overhead_fraction": 1 - s["megapixels_per_s"] / kernel_rate,
                      "scheduling_io_fraction": 1 - compute / t["total_s"], "timings": t,
-                     "tasks_per_tile": s["tasks_per_tile"], "tiles": s["tiles"], "halo": s["halo"],
+                     "tasks_per_tile": s["tasks_per_tile"], "tiles": s["tiles"], "tile_size": s["tile_size"], "halo": s["halo"],
                      "seconds": t["total_s"], "f_measure": scores["changes"]["f_measure"]}
         r = out[size]
         _echo(f"scale {size} x {size}: peak RSS {r['peak_rss_mb']:.0f} MB, {r['megapixels_per_s']:.2f} MP/s end to "
@@ -261,7 +261,7 @@ def bench_scale(workdir, *, sizes=(2048, 4096, 8192), tile=None):
               f"(everything else {100 * r['overhead_fraction']:.1f} %; scheduling and I/O alone "
               f"{100 * r['scheduling_io_fraction']:.1f} %: ingest {t['ingest_s']:.1f} s, change masks "
               f"{t['changes_s']:.1f} s), {r['tasks_per_tile']:.1f} tasks/tile, "
-              f"{r['tiles'][0]}x{r['tiles'][1]} tiles, halo {r['halo']} px, F {r['f_measure']:.3f}, "
+              f"{r['tiles'][0]}x{r['tiles'][1]} tiles of {r['tile_size']} px, halo {r['halo']} px, F {r['f_measure']:.3f}, "
               f"{r['seconds']:.0f} s")
     return out
 
