@@ -2,13 +2,14 @@
 
 Stages (one task per tile each, see :mod:`pipeline._tasks`):
 
-1. ingest both images into the store, chunked by tile (a tile task reads its
-   core and halo: at most nine chunks);
+1. ingest both images into the store, chunked by tile, one task per tile for
+   both (a tile task reads its core and halo: at most nine chunks);
 2. register every tile (resumable: finished tiles are marked in the store);
 3. fuse the per-row trajectories of tiles sharing rows, re-solve tiles whose
    path disagrees with their band's around the others' path;
 4. one change threshold for the whole image from summed tile histograms;
-5. label change candidates per tile, merge labels across seams, keep
+5. label change candidates per tile (the score's margin from the neighbours'
+   border strips that the register tasks keep), merge labels across seams, keep
    components that reach the threshold and the minimum area;
 6. per tile, the mask of its window from the kept labels, small holes filled,
    its core written, and its changes in the reference grid from the fused
@@ -112,12 +113,24 @@ def _run_key(ref_info, dist_info, config, grid):
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def _specs(grid, dims):
+def _edge_depth(grid, change_params):
+    """Depth of the score borders a tile keeps for its neighbours' label pass:
+    the half-maximum test's margin, if every core side is at least that (else 0:
+    the label pass reads the neighbours' chunks)."""
+    depth = change_params.half_max_window // 2 + 1
+    sides = np.concatenate([np.diff(grid.row_edges), np.diff(grid.col_edges)])
+    return depth if sides.min() >= depth else 0
+
+
+def _specs(grid, dims, edge):
     h, w = grid.shape
     t = grid.tile
     ny, nx = grid.grid_shape
     spec = tiles.ArraySpec
-    return {
+    longest = int(max(np.diff(grid.row_edges).max(), np.diff(grid.col_edges).max()))
+    edges = {"work/score_edges": spec((ny, nx, 4, edge, longest), "float32", (1, 1, 4, edge, longest),
+                                      ("tile_y", "tile_x", "side", "depth", "along"), 0.0, compressed=False)}
+    return {**(edges if edge else {}),
         "registered": spec((h, w), "float32", (t, t), ("y", "x"), float("nan")),
         "change_score": spec((h, w), "float32", (t, t), ("y", "x"), 0.0),
         "change_mask": spec((h, w), "uint8", (t, t), ("y", "x")),
@@ -241,16 +254,14 @@ def _outliers(worst, residual_level, tolerance):
     return out
 
 
-def _ingest(runner, group, store, ref_info, dist_info, grid):
+def _ingest(runner, group, run, ref_info, dist_info, grid):
     if group.attrs.get("ingest_complete"):
         log.info("ingest: already complete (resume)")
         return
-    args = [(store, "ingest/reference", ref_info.path, ref_info.shape, t) for t in grid]
-    stats_ref = runner.map("ingest ref", _tasks.ingest_task, args)
-    args = [(store, "ingest/distorted", dist_info.path, dist_info.shape, t) for t in grid]
-    stats_dist = runner.map("ingest dist", _tasks.ingest_task, args)
-    tiles.check_stats(sum(stats_ref[1:], stats_ref[0]), ref_info.path)
-    tiles.check_stats(sum(stats_dist[1:], stats_dist[0]), dist_info.path)
+    sources = [("ingest/reference", ref_info.path), ("ingest/distorted", dist_info.path)]
+    stats = runner.map("ingest", _tasks.ingest_task, [(run, sources, dist_info.shape, t) for t in grid])
+    for k, info in enumerate((ref_info, dist_info)):
+        tiles.check_stats(sum((s[k] for s in stats[1:]), stats[0][k]), info.path)
     group.attrs["ingest_complete"] = True
 
 
@@ -303,9 +314,11 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
     grid = tiles.TileGrid(shape, config.tile or default_tile(shape), halo)
     axes = params.axes
     key = _run_key(ref_info, dist_info, config, grid)
-    group = tiles.create_result_store(output, _specs(grid, len(axes)), {"run_key": key}, overwrite=overwrite,
+    edge = _edge_depth(grid, config.changes)
+    group = tiles.create_result_store(output, _specs(grid, len(axes), edge), {"run_key": key}, overwrite=overwrite,
                                       resume=resume)
     store = str(tiles.partial_path(output))
+    run = _tasks.RunStore(store, key, edge)
     if resume and group.attrs.get("run_key") != key:
         raise InputError(f"{output}: the interrupted run had other inputs or parameters; run without --resume")
     timings = {}
@@ -314,7 +327,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", dist_info.path, shape[0],
                      shape[1], len(grid), grid.tile, grid.halo, scheduler)
             t0 = time.perf_counter()
-            _ingest(runner, group, store, ref_info, dist_info, grid)
+            _ingest(runner, group, run, ref_info, dist_info, grid)
             timings["ingest_s"] = time.perf_counter() - t0
 
             t0 = time.perf_counter()
@@ -322,7 +335,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             todo = sorted((t for t in grid if not done[t.index]), key=lambda t: -_expected_cost(t, camera))
             if resume:
                 log.info("resume: %d of %d tiles already registered", len(grid) - len(todo), len(grid))
-            stats = runner.map("register", _tasks.register_task, [(store, t, camera, params) for t in todo])
+            stats = runner.map("register", _tasks.register_task, [(run, t, camera, params) for t in todo])
             timings["register_s"] = time.perf_counter() - t0
             timings["tiles_registered"] = len(todo)
             if stats:
@@ -342,7 +355,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                     rows = tile.core[0]
                     others = np.delete(paths[rows], tx, axis=1)
                     prior = _fuse(others, np.delete(states[rows], tx, axis=1))
-                    args.append((store, tile, camera, params, prior))
+                    args.append((run, tile, camera, params, prior))
                 runner.map("re-solve", _tasks.register_task, args)
                 paths, states, hist, _, gains = _tile_results(group)
                 fused, agree, worst = _agreement(paths, states, grid, camera, axes)
@@ -356,7 +369,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             t0 = time.perf_counter()
             threshold = ops.change_threshold(hist, params=config.changes)
             labelled = runner.map("label", _tasks.label_task,
-                                  [(store, t, shape, threshold, config.changes) for t in grid])
+                                  [(run, t, grid, threshold, config.changes) for t in grid])
             summaries = {s.index: s for s, _ in labelled}
             offsets, root, area, peak = tiles.merge_tile_labels(summaries, grid.grid_shape)
             keep_global = ops.keep_components(area, peak, threshold, params=config.changes)
@@ -373,7 +386,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                 window = t.grown(grid.halo, shape)
                 pieces = [kept[i] for i in grid.covering(window) if i in kept]
                 if pieces:
-                    args.append((store, t, window, pieces, stored_path[window[0]], camera, axes, config.changes))
+                    args.append((run, t, window, pieces, stored_path[window[0]], camera, axes, config.changes))
             masked = runner.map("masks", _tasks.mask_task, args)
             changed = sum(n for n, _ in masked)
             timings["changes_s"] = time.perf_counter() - t0

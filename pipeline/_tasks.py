@@ -2,25 +2,41 @@
 kernels and writes its core.  Top-level functions with plain arguments, so any
 dask scheduler (threads, processes, distributed) can run them."""
 
+import functools
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import zarr
 
 import ops
-from tiles import ingest_core, read_padded
+from tiles import edge_strips, ingest_core, padded_from_edges, read_padded
 from tiles._stitch import TileLabels
 
 __all__ = []
 
 
-def _open(store, mode="r+"):
-    return zarr.open_group(store=str(store), mode=mode)
+@dataclass(frozen=True)
+class RunStore:
+    """The partial store of one run, as the tasks see it: its path and the run
+    key.  The key names the inputs and parameters and with them the layout of
+    every array, so a process opens each array of a run once and keeps it (an
+    open costs milliseconds; a tile task is a few of them)."""
+
+    path: str
+    key: str
+    edge: int = 0  # depth of the score borders each tile keeps for its neighbours' label pass (0: none)
 
 
-def ingest_task(store, name, path, shape, tile):
-    """Ingest one tile of an input image (see :mod:`tiles._ingest`)."""
-    return ingest_core(path, shape, tile, _open(store)[name])
+@functools.lru_cache(maxsize=32)
+def _array(store, name):
+    return zarr.open_group(store=store.path, mode="r+")[name]
+
+
+def ingest_task(store, sources, shape, tile):
+    """Ingest one tile of each input image: ``sources`` lists (array name, image
+    path) pairs (see :mod:`tiles._ingest`).  Returns their WindowStats."""
+    return [ingest_core(path, shape, tile, _array(store, name)) for name, path in sources]
 
 
 def register_task(store, tile, camera, params, prior=None):
@@ -34,11 +50,10 @@ def register_task(store, tile, camera, params, prior=None):
         Seconds spent (read, kernel, write) and the tile's gain.
     """
     start = time.perf_counter()
-    group = _open(store)
     ty, tx = tile.index
     h, w = tile.core_shape
-    reference = read_padded(group["ingest/reference"], *tile.window)
-    distorted = group["ingest/distorted"][tile.core]
+    reference = read_padded(_array(store, "ingest/reference"), *tile.window)
+    distorted = _array(store, "ingest/distorted")[tile.core]
     read = time.perf_counter() - start
     ref_valid = np.isfinite(reference)
     dist_valid = np.isfinite(distorted)
@@ -50,31 +65,40 @@ def register_task(store, tile, camera, params, prior=None):
     residual = np.where(result.valid, distorted - result.registered, 0.0)
     hist = ops.score_histogram(residual, score, result.valid)
     write_start = time.perf_counter()
-    group["registered"][tile.core] = result.registered
-    group["change_score"][tile.core] = score.astype(np.float32)
-    group["work/tile_rows"][tile.core[0], tx] = np.concatenate(
+    _array(store, "registered")[tile.core] = result.registered
+    _array(store, "change_score")[tile.core] = score.astype(np.float32)
+    if store.edge:
+        strips = _array(store, "work/score_edges")
+        strips[ty, tx] = edge_strips(score.astype(np.float32), store.edge, strips.shape[-1])
+    _array(store, "work/tile_rows")[tile.core[0], tx] = np.concatenate(
         [result.trajectory, result.row_state[:, None]], axis=1).astype(np.float32)
     seconds = time.perf_counter() - start
-    group["work/tile_summary"][ty, tx] = np.concatenate(
+    _array(store, "work/tile_summary")[ty, tx] = np.concatenate(
         [hist.residual, hist.score, [result.gain, seconds, 1.0]])
     return {"index": tile.index, "seconds": seconds, "read_s": read, "write_s": time.perf_counter() - write_start,
             "kernel_s": write_start - start - read, "pixels": h * w, "gain": result.gain}
 
 
-def label_task(store, tile, shape, threshold, change_params):
-    """Stage 2: label the change candidates of one core (score read with the
-    margin the local half-maximum test needs).  Returns (TileLabels, compute
-    seconds)."""
-    group = _open(store)
-    window = tile.grown(change_params.half_max_window // 2 + 1, shape)
-    score = group["change_score"][window]
+def label_task(store, tile, grid, threshold, change_params):
+    """Stage 2: label the change candidates of one core, its score grown by the
+    margin the local half-maximum test needs (from the neighbours' border strips
+    when the store keeps them, else from their chunks).  Returns (TileLabels,
+    compute seconds)."""
+    depth = change_params.half_max_window // 2 + 1
+    window = tile.grown(depth, grid.shape)
+    if store.edge == depth:
+        ty, tx = tile.index
+        edges = _array(store, "work/score_edges")[max(ty - 1, 0):ty + 2, max(tx - 1, 0):tx + 2]
+        score = padded_from_edges(_array(store, "change_score")[tile.core], edges, grid, tile, depth)
+    else:
+        score = _array(store, "change_score")[window]
     start = time.perf_counter()
     candidates = ops.change_candidates(score, threshold, params=change_params)
     core = _inside(tile.core, window)
     labels, area, peak = ops.label_components(candidates[core], score[core])
     compute = time.perf_counter() - start
     if len(area) > 1:  # unwritten chunks read as 0: a tile without candidates writes nothing
-        group["work/labels"][tile.core] = labels
+        _array(store, "work/labels")[tile.core] = labels
     return TileLabels.from_labels(tile.index, labels, area, peak), compute
 
 
@@ -94,8 +118,7 @@ def mask_task(store, tile, window, kept, trajectory, camera, axes, change_params
     window that kept some label (tiles with none are not run: both masks read 0
     where nothing was written).  Returns (changed core pixels, compute seconds).
     """
-    group = _open(store)
-    labels = group["work/labels"][window]
+    labels = _array(store, "work/labels")[window]
     start = time.perf_counter()
     mask = np.zeros(labels.shape, dtype=bool)
     for core, keep in kept:
@@ -108,7 +131,7 @@ def mask_task(store, tile, window, kept, trajectory, camera, axes, change_params
                                    distorted_origin_yx=(window[0].start, window[1].start))
     compute = time.perf_counter() - start
     if core_mask.any():
-        group["change_mask"][tile.core] = core_mask.astype(np.uint8)
+        _array(store, "change_mask")[tile.core] = core_mask.astype(np.uint8)
     if ref.any():
-        group["change_mask_reference"][tile.core] = ref
+        _array(store, "change_mask_reference")[tile.core] = ref
     return int(core_mask.sum()), compute

@@ -5,7 +5,13 @@ import pytest
 from scipy import ndimage
 
 from ops import ParameterError
-from tiles import TileGrid, TileLabels, merge_tile_labels
+from tiles import (
+    TileGrid,
+    TileLabels,
+    edge_strips,
+    merge_tile_labels,
+    padded_from_edges,
+)
 
 
 def test_tiles_cover_the_image_once_with_ragged_and_merged_edges():
@@ -57,3 +63,20 @@ def test_seam_merge_equals_whole_image_labelling():
     assert len(pairs) == n == len({b for _, b in pairs})
     for a, b in pairs:
         assert (whole == a).sum() == area[b - 1]
+
+
+@pytest.mark.parametrize("shape, tile", [((300, 410), 96), ((128, 128), 64), ((100, 260), 48)])
+def test_margins_from_neighbour_edge_strips_equal_the_image(shape, tile):
+    image = np.random.default_rng(0).random(shape).astype(np.float32)
+    grid = TileGrid(shape, tile, 0)
+    depth = 8
+    ny, nx = grid.grid_shape
+    length = int(max(np.diff(grid.row_edges).max(), np.diff(grid.col_edges).max()))
+    edges = np.zeros((ny, nx, 4, depth, length), np.float32)
+    for t in grid:
+        edges[t.index] = edge_strips(image[t.core], depth, length)
+    for t in grid:
+        ty, tx = t.index
+        block = edges[max(ty - 1, 0):ty + 2, max(tx - 1, 0):tx + 2]
+        padded = padded_from_edges(image[t.core], block, grid, t, depth)
+        np.testing.assert_array_equal(padded, image[t.grown(depth, shape)])
