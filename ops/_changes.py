@@ -98,6 +98,12 @@ class ChangeParams:
         if self.min_area < 0:
             raise ParameterError(f"min_area: expected >= 0 pixels, got {self.min_area}")
 
+    @property
+    def margin(self):
+        """Pixels around a window that :func:`change_candidates` reads to decide
+        the window's own pixels (half the half-maximum window, and one more)."""
+        return self.half_max_window // 2 + 1
+
 
 @dataclass(frozen=True)
 class ScoreHistogram:
@@ -175,7 +181,7 @@ def change_candidates(score, threshold, *, params=ChangeParams()):
     least ``half_max`` times the largest score within ``half_max_window``.
 
     Local (a window of ``half_max_window // 2`` px around a pixel decides), so a
-    tile computes it on its core grown by that much.
+    tile computes it on its core grown by ``params.margin``.
 
     Parameters
     ----------

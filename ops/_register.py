@@ -623,12 +623,13 @@ def _column_gain_guess(ref, dist, dvalid, ref_origin, dist_origin, blocks=16):
     if same.shape != dist.shape:
         return None
     edges = np.linspace(0, width, blocks + 1).astype(int)
+    offsets = _column_offsets(width)
     u, ratio = [], []
     for c0, c1 in zip(edges[:-1], edges[1:]):
         d, r = dist[:, c0:c1][dvalid[:, c0:c1]], same[:, c0:c1]
         r = r[np.isfinite(r)]
         if d.size > 100 and r.size > 100 and np.median(r) > 0:
-            u.append((c0 + c1 - 1) / 2.0 - (width - 1) / 2.0)
+            u.append(offsets[c0:c1].mean())
             ratio.append(np.median(d) / np.median(r))
     if len(u) < 4:
         return None
@@ -637,7 +638,7 @@ def _column_gain_guess(ref, dist, dvalid, ref_origin, dist_origin, blocks=16):
     i, j = np.triu_indices(len(u), 1)
     slope = float(np.median((ratio[j] - ratio[i]) / (u[j] - u[i])))
     level = float(np.median(ratio - slope * u))
-    factor = 1.0 + slope / level * (np.arange(width) - (width - 1) / 2.0)
+    factor = 1.0 + slope / level * offsets
     if level <= 0 or factor.min() <= 0.25 or np.abs(factor - 1.0).max() <= GAIN_SLOPE_RESOLVE:
         return None
     return factor
@@ -650,13 +651,12 @@ def _gain_slope(out, dist, delta, iterations=8):
     valid = out.valid & np.isfinite(out.registered)
     if valid.sum() < 100:
         return None
-    width = dist.shape[1]
-    u = (np.arange(width) - (width - 1) / 2.0)[None, :] * np.ones((dist.shape[0], 1))
+    u = _column_offsets(dist.shape[1])
     sample = valid.copy()
     sample[1::2] = False  # every other row is plenty for one parameter
     reg = out.registered[sample].astype(np.float64)
     y = dist[sample] - reg
-    z = reg * u[sample]
+    z = reg * np.broadcast_to(u, dist.shape)[sample]
     b = 0.0
     for _ in range(iterations):
         r = y - b * z
@@ -665,8 +665,13 @@ def _gain_slope(out, dist, delta, iterations=8):
         if den <= 0:
             return None
         b = float(np.sum(wts * z * y)) / den
-    factor = 1.0 + b * u[0]
+    factor = 1.0 + b * u
     return factor if factor.min() > 0.25 else None
+
+
+def _column_offsets(width):
+    """Column offsets from the window centre, the ``u`` of the gain slope."""
+    return np.arange(width) - (width - 1) / 2.0
 
 
 def _fold_gain(out, dist, factor, delta):

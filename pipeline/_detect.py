@@ -117,9 +117,7 @@ def _edge_depth(grid, change_params):
     """Depth of the score borders a tile keeps for its neighbours' label pass:
     the half-maximum test's margin, if every core side is at least that (else 0:
     the label pass reads the neighbours' chunks)."""
-    depth = change_params.half_max_window // 2 + 1
-    sides = np.concatenate([np.diff(grid.row_edges), np.diff(grid.col_edges)])
-    return depth if sides.min() >= depth else 0
+    return change_params.margin if grid.core_sides[0] >= change_params.margin else 0
 
 
 def _specs(grid, dims, edge):
@@ -127,7 +125,7 @@ def _specs(grid, dims, edge):
     t = grid.tile
     ny, nx = grid.grid_shape
     spec = tiles.ArraySpec
-    longest = int(max(np.diff(grid.row_edges).max(), np.diff(grid.col_edges).max()))
+    longest = grid.core_sides[1]
     edges = {"work/score_edges": spec((ny, nx, 4, edge, longest), "float32", (1, 1, 4, edge, longest),
                                       ("tile_y", "tile_x", "side", "depth", "along"), 0.0, compressed=False)}
     return {**(edges if edge else {}),
@@ -170,7 +168,6 @@ def _tile_results(group):
 def _tile_done(group):
     """(ny, nx) bool: tiles whose registration finished."""
     return group["work/tile_summary"][..., -1] == 1
-
 
 
 def _row_end_points(tile):

@@ -84,12 +84,11 @@ def label_task(store, tile, grid, threshold, change_params):
     margin the local half-maximum test needs (from the neighbours' border strips
     when the store keeps them, else from their chunks).  Returns (TileLabels,
     compute seconds)."""
-    depth = change_params.half_max_window // 2 + 1
-    window = tile.grown(depth, grid.shape)
-    if store.edge == depth:
+    window = tile.grown(change_params.margin, grid.shape)
+    if store.edge:  # the margin's depth (see pipeline._detect._edge_depth)
         ty, tx = tile.index
         edges = _array(store, "work/score_edges")[max(ty - 1, 0):ty + 2, max(tx - 1, 0):tx + 2]
-        score = padded_from_edges(_array(store, "change_score")[tile.core], edges, grid, tile, depth)
+        score = padded_from_edges(_array(store, "change_score")[tile.core], edges, grid, tile, store.edge)
     else:
         score = _array(store, "change_score")[window]
     start = time.perf_counter()

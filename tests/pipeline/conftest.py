@@ -19,12 +19,17 @@ def small_pair_files(tmp_path_factory, small_pair):
     return out, ref, dist
 
 
+def inplane_pair_files(tmp_path_factory, name, shape, *, changes, seed, fmt):
+    """A synthetic in-plane pair written to a fresh directory: (pair, directory,
+    reference path, distorted path)."""
+    pair = ops.synthesize_pair(shape, motion="inplane", changes=changes, noise=0.002, seed=seed)
+    out = tmp_path_factory.mktemp(name)
+    return (pair, out, *write_pair(out, pair, fmt=fmt))
+
+
 @pytest.fixture(scope="session")
 def geotiff_pair_files(tmp_path_factory):
-    pair = ops.synthesize_pair((256, 256), motion="inplane", changes=5, noise=0.002, seed=12)
-    out = tmp_path_factory.mktemp("geopair")
-    ref, dist = write_pair(out, pair, fmt="tif")
-    return out, ref, dist
+    return inplane_pair_files(tmp_path_factory, "geopair", (256, 256), changes=5, seed=12, fmt="tif")[1:]
 
 
 def read_store(path):

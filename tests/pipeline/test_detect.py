@@ -15,7 +15,7 @@ import ops
 import pipeline
 from pipeline import DetectConfig, detect, write_pair
 
-from .conftest import read_store
+from .conftest import inplane_pair_files, read_store
 
 
 def _iou(a, b):
@@ -25,9 +25,7 @@ def _iou(a, b):
 @pytest.fixture(scope="module")
 def wide_pair(tmp_path_factory):
     """1024 x 1000: 256-px tiles leave a ragged last column (232 px)."""
-    pair = ops.synthesize_pair((1024, 1000), motion="inplane", changes=20, noise=0.002, seed=7)
-    out = tmp_path_factory.mktemp("wide")
-    ref, dist = write_pair(out, pair, fmt="npy")
+    pair, _, ref, dist = inplane_pair_files(tmp_path_factory, "wide", (1024, 1000), changes=20, seed=7, fmt="npy")
     return pair, ref, dist
 
 

@@ -20,6 +20,7 @@ def test_tiles_cover_the_image_once_with_ragged_and_merged_edges():
     # 1000 = 3 x 256 + 232 (kept ragged); 1100 = 4 x 256 + 76 (76 < 128: merged into the last tile)
     assert list(np.diff(grid.row_edges)) == [256, 256, 256, 232]
     assert list(np.diff(grid.col_edges)) == [256, 256, 256, 332]
+    assert grid.core_sides == (232, 332)
     cover = np.zeros((1000, 1100), int)
     for tile in grid:
         cover[tile.core] += 1
@@ -71,7 +72,7 @@ def test_margins_from_neighbour_edge_strips_equal_the_image(shape, tile):
     grid = TileGrid(shape, tile, 0)
     depth = 8
     ny, nx = grid.grid_shape
-    length = int(max(np.diff(grid.row_edges).max(), np.diff(grid.col_edges).max()))
+    length = grid.core_sides[1]
     edges = np.zeros((ny, nx, 4, depth, length), np.float32)
     for t in grid:
         edges[t.index] = edge_strips(image[t.core], depth, length)
