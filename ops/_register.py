@@ -261,18 +261,23 @@ class _RowProblem:
 
     def _free_slot(self, band):
         """Room for one more pre-warped image of ``band``: an unused slot, else the
-        slots of bands two or more away (rows are solved band after band, so those
-        are rarely needed again, and warping again gives the same image), else a
-        larger stack.  This keeps a tile's memory to a few bands of rotations."""
+        slots of bands two or more away, else those of the neighbouring bands
+        (rows are solved band after band, so other bands are rarely needed again,
+        and warping again gives the same image), else a stack a quarter larger.
+        This keeps a tile's memory to about two bands of rotations: at an
+        8192 x 8192 image's corner tile, 50 slots instead of 128 with no more
+        warps."""
         if not self.free:
-            stale = [kb for kb in self.slots if abs(kb[1] - band) >= 2]
-            if stale:
-                self.free = [self.slots.pop(kb) for kb in stale]
-                self.slot_cache = {k: v for k, v in self.slot_cache.items() if abs(k[1] - band) < 2}
-                self.generation += 1
+            for distance in (2, 1):
+                stale = [kb for kb in self.slots if abs(kb[1] - band) >= distance]
+                if stale:
+                    self.free = [self.slots.pop(kb) for kb in stale]
+                    self.slot_cache = {k: v for k, v in self.slot_cache.items() if abs(k[1] - band) < distance}
+                    self.generation += 1
+                    break
             else:
                 used = 0 if self.stack is None else self.stack.shape[0]
-                grow = np.empty((max(16, 2 * used),) + self.stack_shape, dtype=np.float32)
+                grow = np.empty((used + max(8, used // 4),) + self.stack_shape, dtype=np.float32)
                 if used:
                     grow[:used] = self.stack
                 self.stack = grow
@@ -522,7 +527,8 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
     Parameters
     ----------
     reference : ndarray, shape (Hr, Wr), float32 in [0, 1]
-        Reference window (may be larger than the distorted one: a halo).
+        Reference window (may be larger than the distorted one: a halo); NaN
+        marks nodata, as ``reference_valid`` False does.
     distorted : ndarray, shape (H, W), float32 in [0, 1]
         Captured window.
     camera : Camera, optional

@@ -1,19 +1,22 @@
 """``rsmb detect``: tiled RSMB registration and change detection of one capture.
 
-Stages (one task per tile each, see :mod:`pipeline._tasks`):
+Registration runs one task per tile.  The stages that mostly move data (ingest,
+labelling, masks) run one task per block of tiles, about 1024 px on a side (see
+:func:`_block_grid`): per zarr call and per window edge they cost the same
+whatever the tile, so small tiles would pay them many times over.
 
-1. ingest both images into the store, chunked by tile, one task per tile for
+1. ingest both images into the store, chunked by tile, one task per block for
    both (a tile task reads its core and halo: at most nine chunks);
 2. register every tile (resumable: finished tiles are marked in the store);
 3. fuse the per-row trajectories of tiles sharing rows, re-solve tiles whose
    path disagrees with their band's around the others' path;
 4. one change threshold for the whole image from summed tile histograms;
-5. label change candidates per tile (the score's margin from the neighbours'
-   border strips that the register tasks keep), merge labels across seams, keep
-   components that reach the threshold and the minimum area;
-6. per tile, the mask of its window from the kept labels, small holes filled,
+5. label change candidates per block (its score read with the margin the
+   local half-maximum test needs), merge labels across seams, keep components
+   that reach the threshold and the minimum area;
+6. per block, the mask of its window from the kept labels, small holes filled,
    its core written, and its changes in the reference grid from the fused
-   trajectory (tiles with no kept label under their window are skipped);
+   trajectory (blocks with no kept label under their window are skipped);
 7. attributes, GeoTIFFs on request, and an atomic rename of the store.
 """
 
@@ -113,22 +116,25 @@ def _run_key(ref_info, dist_info, config, grid):
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def _edge_depth(grid, change_params):
-    """Depth of the score borders a tile keeps for its neighbours' label pass:
-    the half-maximum test's margin, if every core side is at least that (else 0:
-    the label pass reads the neighbours' chunks)."""
-    return change_params.margin if grid.core_sides[0] >= change_params.margin else 0
+BLOCK = 1024  # px: the side the ingest, label and mask tasks aim for
 
 
-def _specs(grid, dims, edge):
+def _block_grid(grid):
+    """Blocks of tiles for ingest, labelling and masks: about :data:`BLOCK` px on a
+    side and at least two per axis when there are four tiles or more (both cores
+    stay busy).  Those tasks cost a few zarr calls (about 1 ms each) and read
+    a margin or halo around their core: per block, not per small tile.  At
+    8192 x 8192 with 512-px tiles, 64 blocks instead of 256 tiles."""
+    ny, nx = grid.grid_shape
+    return grid.coarsened(max(1, min(BLOCK // grid.tile, ny // 2, nx // 2)))
+
+
+def _specs(grid, dims):
     h, w = grid.shape
     t = grid.tile
     ny, nx = grid.grid_shape
     spec = tiles.ArraySpec
-    longest = grid.core_sides[1]
-    edges = {"work/score_edges": spec((ny, nx, 4, edge, longest), "float32", (1, 1, 4, edge, longest),
-                                      ("tile_y", "tile_x", "side", "depth", "along"), 0.0, compressed=False)}
-    return {**(edges if edge else {}),
+    return {
         "registered": spec((h, w), "float32", (t, t), ("y", "x"), float("nan")),
         "change_score": spec((h, w), "float32", (t, t), ("y", "x"), 0.0),
         "change_mask": spec((h, w), "uint8", (t, t), ("y", "x")),
@@ -251,12 +257,12 @@ def _outliers(worst, residual_level, tolerance):
     return out
 
 
-def _ingest(runner, group, run, ref_info, dist_info, grid):
+def _ingest(runner, group, run, ref_info, dist_info, blocks):
     if group.attrs.get("ingest_complete"):
         log.info("ingest: already complete (resume)")
         return
     sources = [("ingest/reference", ref_info.path), ("ingest/distorted", dist_info.path)]
-    stats = runner.map("ingest", _tasks.ingest_task, [(run, sources, dist_info.shape, t) for t in grid])
+    stats = runner.map("ingest", _tasks.ingest_task, [(run, sources, dist_info.shape, b) for b in blocks])
     for k, info in enumerate((ref_info, dist_info)):
         tiles.check_stats(sum((s[k] for s in stats[1:]), stats[0][k]), info.path)
     group.attrs["ingest_complete"] = True
@@ -311,11 +317,11 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
     grid = tiles.TileGrid(shape, config.tile or default_tile(shape), halo)
     axes = params.axes
     key = _run_key(ref_info, dist_info, config, grid)
-    edge = _edge_depth(grid, config.changes)
-    group = tiles.create_result_store(output, _specs(grid, len(axes), edge), {"run_key": key}, overwrite=overwrite,
+    blocks = _block_grid(grid)
+    group = tiles.create_result_store(output, _specs(grid, len(axes)), {"run_key": key}, overwrite=overwrite,
                                       resume=resume)
     store = str(tiles.partial_path(output))
-    run = _tasks.RunStore(store, key, edge)
+    run = _tasks.RunStore(store, key)
     if resume and group.attrs.get("run_key") != key:
         raise InputError(f"{output}: the interrupted run had other inputs or parameters; run without --resume")
     timings = {}
@@ -324,7 +330,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", dist_info.path, shape[0],
                      shape[1], len(grid), grid.tile, grid.halo, scheduler)
             t0 = time.perf_counter()
-            _ingest(runner, group, run, ref_info, dist_info, grid)
+            _ingest(runner, group, run, ref_info, dist_info, blocks)
             timings["ingest_s"] = time.perf_counter() - t0
 
             t0 = time.perf_counter()
@@ -366,24 +372,24 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             t0 = time.perf_counter()
             threshold = ops.change_threshold(hist, params=config.changes)
             labelled = runner.map("label", _tasks.label_task,
-                                  [(run, t, grid, threshold, config.changes) for t in grid])
+                                  [(run, b, shape, threshold, config.changes) for b in blocks])
             summaries = {s.index: s for s, _ in labelled}
-            offsets, root, area, peak = tiles.merge_tile_labels(summaries, grid.grid_shape)
+            offsets, root, area, peak = tiles.merge_tile_labels(summaries, blocks.grid_shape)
             keep_global = ops.keep_components(area, peak, threshold, params=config.changes)
-            kept = {}  # tile index -> keep flag per local label, for tiles that keep any
-            for t in grid:
-                n = len(summaries[t.index].area)
-                keep = keep_global[root[offsets[t.index]:offsets[t.index] + n]].copy()
+            kept = {}  # block index -> keep flag per local label, for blocks that keep any
+            for b in blocks:
+                n = len(summaries[b.index].area)
+                keep = keep_global[root[offsets[b.index]:offsets[b.index] + n]].copy()
                 keep[0] = False
                 if keep.any():
-                    kept[t.index] = (t.core, keep)
+                    kept[b.index] = (b.core, keep)
             stored_path = fused.astype(np.float32).astype(np.float64)  # as the store holds it
             args = []
-            for t in grid:
-                window = t.grown(grid.halo, shape)
-                pieces = [kept[i] for i in grid.covering(window) if i in kept]
+            for b in blocks:
+                window = b.grown(grid.halo, shape)
+                pieces = [kept[i] for i in blocks.covering(window) if i in kept]
                 if pieces:
-                    args.append((run, t, window, pieces, stored_path[window[0]], camera, axes, config.changes))
+                    args.append((run, b, window, pieces, stored_path[window[0]], camera, axes, config.changes))
             masked = runner.map("masks", _tasks.mask_task, args)
             changed = sum(n for n, _ in masked)
             timings["changes_s"] = time.perf_counter() - t0
@@ -415,7 +421,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             "parameters": dataclasses.asdict(config),
             "pose_axes": list(axes),
             "pose_units": [ops.AXIS_UNITS[a] for a in axes],
-            "tile_grid": {"shape": list(shape), "tile": grid.tile, "halo": grid.halo,
+            "tile_grid": {"shape": list(shape), "tile": grid.tile, "halo": grid.halo, "block": blocks.tile,
                           "tiles": list(grid.grid_shape), "row_edges": grid.row_edges.tolist(),
                           "col_edges": grid.col_edges.tolist()},
             "camera": {"focal_px": camera.focal, "center_xy": list(camera.center_xy)},

@@ -1,6 +1,9 @@
 """Tile tasks: each reads its own windows from the zarr store, calls the ops
-kernels and writes its core.  Top-level functions with plain arguments, so any
-dask scheduler (threads, processes, distributed) can run them."""
+kernels and writes its core.  Registration runs per tile; ingest, labelling
+and masks run per block of tiles (see ``pipeline._detect._block_grid``), a
+:class:`tiles.Tile` of the coarser grid.  Top-level functions with plain
+arguments, so any dask scheduler (threads, processes, distributed) can run
+them."""
 
 import functools
 import time
@@ -10,7 +13,7 @@ import numpy as np
 import zarr
 
 import ops
-from tiles import edge_strips, ingest_core, padded_from_edges, read_padded
+from tiles import ingest_core, read_padded
 from tiles._stitch import TileLabels
 
 __all__ = []
@@ -25,7 +28,6 @@ class RunStore:
 
     path: str
     key: str
-    edge: int = 0  # depth of the score borders each tile keeps for its neighbours' label pass (0: none)
 
 
 @functools.lru_cache(maxsize=32)
@@ -33,10 +35,10 @@ def _array(store, name):
     return zarr.open_group(store=store.path, mode="r+")[name]
 
 
-def ingest_task(store, sources, shape, tile):
-    """Ingest one tile of each input image: ``sources`` lists (array name, image
+def ingest_task(store, sources, shape, block):
+    """Ingest one block of each input image: ``sources`` lists (array name, image
     path) pairs (see :mod:`tiles._ingest`).  Returns their WindowStats."""
-    return [ingest_core(path, shape, tile, _array(store, name)) for name, path in sources]
+    return [ingest_core(path, shape, block, _array(store, name)) for name, path in sources]
 
 
 def register_task(store, tile, camera, params, prior=None):
@@ -55,11 +57,10 @@ def register_task(store, tile, camera, params, prior=None):
     reference = read_padded(_array(store, "ingest/reference"), *tile.window)
     distorted = _array(store, "ingest/distorted")[tile.core]
     read = time.perf_counter() - start
-    ref_valid = np.isfinite(reference)
     dist_valid = np.isfinite(distorted)
-    result = ops.register(np.nan_to_num(reference), np.nan_to_num(distorted), camera=camera, params=params,
+    result = ops.register(reference, np.nan_to_num(distorted), camera=camera, params=params,  # NaN: nodata
                           reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
-                          reference_valid=ref_valid, distorted_valid=dist_valid, prior=prior)
+                          distorted_valid=dist_valid, prior=prior)
     tile.check_core(result.registered)
     score = np.abs(result.chi)
     residual = np.where(result.valid, distorted - result.registered, 0.0)
@@ -67,9 +68,6 @@ def register_task(store, tile, camera, params, prior=None):
     write_start = time.perf_counter()
     _array(store, "registered")[tile.core] = result.registered
     _array(store, "change_score")[tile.core] = score.astype(np.float32)
-    if store.edge:
-        strips = _array(store, "work/score_edges")
-        strips[ty, tx] = edge_strips(score.astype(np.float32), store.edge, strips.shape[-1])
     _array(store, "work/tile_rows")[tile.core[0], tx] = np.concatenate(
         [result.trajectory, result.row_state[:, None]], axis=1).astype(np.float32)
     seconds = time.perf_counter() - start
@@ -79,26 +77,20 @@ def register_task(store, tile, camera, params, prior=None):
             "kernel_s": write_start - start - read, "pixels": h * w, "gain": result.gain}
 
 
-def label_task(store, tile, grid, threshold, change_params):
-    """Stage 2: label the change candidates of one core, its score grown by the
-    margin the local half-maximum test needs (from the neighbours' border strips
-    when the store keeps them, else from their chunks).  Returns (TileLabels,
+def label_task(store, block, shape, threshold, change_params):
+    """Stage 2: label the change candidates of one block's core, its score grown
+    by the margin the local half-maximum test needs.  Returns (TileLabels,
     compute seconds)."""
-    window = tile.grown(change_params.margin, grid.shape)
-    if store.edge:  # the margin's depth (see pipeline._detect._edge_depth)
-        ty, tx = tile.index
-        edges = _array(store, "work/score_edges")[max(ty - 1, 0):ty + 2, max(tx - 1, 0):tx + 2]
-        score = padded_from_edges(_array(store, "change_score")[tile.core], edges, grid, tile, store.edge)
-    else:
-        score = _array(store, "change_score")[window]
+    window = block.grown(change_params.margin, shape)
+    score = _array(store, "change_score")[window]
     start = time.perf_counter()
     candidates = ops.change_candidates(score, threshold, params=change_params)
-    core = _inside(tile.core, window)
+    core = _inside(block.core, window)
     labels, area, peak = ops.label_components(candidates[core], score[core])
     compute = time.perf_counter() - start
-    if len(area) > 1:  # unwritten chunks read as 0: a tile without candidates writes nothing
-        _array(store, "work/labels")[tile.core] = labels
-    return TileLabels.from_labels(tile.index, labels, area, peak), compute
+    if len(area) > 1:  # unwritten chunks read as 0: a block without candidates writes nothing
+        _array(store, "work/labels")[block.core] = labels
+    return TileLabels.from_labels(block.index, labels, area, peak), compute
 
 
 def _inside(part, window):
@@ -106,15 +98,15 @@ def _inside(part, window):
     return tuple(slice(p.start - w.start, p.stop - w.start) for p, w in zip(part, window))
 
 
-def mask_task(store, tile, window, kept, trajectory, camera, axes, change_params):
-    """Stage 3: one tile's changes in both grids.  The kept labels of the tiles
+def mask_task(store, block, window, kept, trajectory, camera, axes, change_params):
+    """Stage 3: one block's changes in both grids.  The kept labels of the blocks
     under its window (core plus halo) make the window's mask, small holes are
     filled there (a hole cut by a seam is filled like any other), the core is
     written, and the window's mask carried by the fused ``trajectory`` (rows of
-    the window) gives the tile's changes in the reference grid.
+    the window) gives the block's changes in the reference grid.
 
-    ``kept`` lists (core, keep flags per local label) of the tiles under the
-    window that kept some label (tiles with none are not run: both masks read 0
+    ``kept`` lists (core, keep flags per local label) of the blocks under the
+    window that kept some label (blocks with none are not run: both masks read 0
     where nothing was written).  Returns (changed core pixels, compute seconds).
     """
     labels = _array(store, "work/labels")[window]
@@ -124,13 +116,13 @@ def mask_task(store, tile, window, kept, trajectory, camera, axes, change_params
         part = _inside(tuple(slice(max(c.start, w.start), min(c.stop, w.stop)) for c, w in zip(core, window)), window)
         mask[part] = keep[labels[part]]
     mask = ops.fill_holes(mask, params=change_params)
-    core_mask = mask[_inside(tile.core, window)]
-    ref = ops.changes_to_reference(mask, trajectory, axes=axes, camera=camera, reference_shape=tile.core_shape,
-                                   reference_origin_yx=tile.core_origin,
+    core_mask = mask[_inside(block.core, window)]
+    ref = ops.changes_to_reference(mask, trajectory, axes=axes, camera=camera, reference_shape=block.core_shape,
+                                   reference_origin_yx=block.core_origin,
                                    distorted_origin_yx=(window[0].start, window[1].start))
     compute = time.perf_counter() - start
     if core_mask.any():
-        _array(store, "change_mask")[tile.core] = core_mask.astype(np.uint8)
+        _array(store, "change_mask")[block.core] = core_mask.astype(np.uint8)
     if ref.any():
-        _array(store, "change_mask_reference")[tile.core] = ref
+        _array(store, "change_mask_reference")[block.core] = ref
     return int(core_mask.sum()), compute

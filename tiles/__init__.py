@@ -14,7 +14,7 @@ from ._io import (
     read_window,
     write_geotiff,
 )
-from ._stitch import TileLabels, edge_strips, merge_tile_labels, padded_from_edges
+from ._stitch import TileLabels, merge_tile_labels
 from ._store import (
     ArraySpec,
     abort_result_store,
@@ -44,8 +44,6 @@ __all__ = [
     "write_geotiff",
     "TileLabels",
     "merge_tile_labels",
-    "edge_strips",
-    "padded_from_edges",
     "ArraySpec",
     "create_result_store",
     "write_array",

@@ -126,6 +126,15 @@ class TileGrid:
         window = (slice(int(r0) - h, int(r1) + h), slice(int(c0) - h, int(c1) + h))
         return Tile((ty, tx), core, window)
 
+    def coarsened(self, factor):
+        """The grid of blocks of ``factor`` x ``factor`` tiles (a merged edge tile
+        stays whole) with the same halo.  Every block edge is a tile edge, so a
+        block's core is a union of tile cores: writes by block never share a
+        chunk of a tile-chunked array with another block."""
+        if int(factor) < 1:
+            raise ParameterError(f"factor: expected an integer >= 1, got {factor}")
+        return TileGrid(self.shape, self.tile * int(factor), self.halo)
+
     def covering(self, window):
         """Indices of the tiles whose cores meet ``window`` (a tuple of slices
         inside the image)."""

@@ -2,8 +2,8 @@
 
 Float32 luminance with NaN for nodata, one chunk per core tile, uncompressed
 (the array is scratch: written once, read by the tile tasks, deleted).  Every
-tile is read from the input with a windowed read and written by one task, so
-no step holds the whole image.
+tile, or block of whole tiles, is read from the input with a windowed read and
+written by one task, so no step holds the whole image.
 
 A tile task reads its core plus halo with :func:`read_padded`, which touches
 up to nine chunks.  The alternative, baking each tile's halo into one chunk
@@ -71,8 +71,8 @@ def read_padded(array, rows, cols):
 
 
 def ingest_core(path, shape, tile, array):
-    """Write ``tile``'s core of the image at ``path`` into ``array`` (H, W).
-    Returns :class:`WindowStats` of the core."""
+    """Write ``tile``'s core (a tile or a block of tiles) of the image at ``path``
+    into ``array`` (H, W).  Returns :class:`WindowStats` of the core."""
     data = _read_clipped(path, shape, *tile.core)
     array[tile.core] = data
     return _stats(data)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["TileLabels", "edge_strips", "merge_tile_labels", "padded_from_edges"]
+__all__ = ["TileLabels", "merge_tile_labels"]
 
 
 @dataclass(frozen=True)
@@ -121,60 +121,3 @@ def merge_tile_labels(summaries, grid_shape):
         np.add.at(area, ids, s.area)
         np.maximum.at(peak, ids, s.peak)
     return offsets, root, area, peak
-
-
-def edge_strips(core, depth, length):
-    """The four borders of a tile's core array, ``depth`` deep, as one array
-    (4, depth, length): top rows, bottom rows, left columns and right columns
-    (columns turned into rows), zero beyond the core's side.  Neighbouring tiles
-    read these instead of this tile's whole chunk when they need a margin."""
-    h, w = core.shape
-    out = np.zeros((4, depth, length), dtype=core.dtype)
-    out[0, :, :w] = core[:depth]
-    out[1, :, :w] = core[h - depth:]
-    out[2, :, :h] = core[:, :depth].T
-    out[3, :, :h] = core[:, w - depth:].T
-    return out
-
-
-def padded_from_edges(core, edges, grid, tile, depth):
-    """``tile``'s core array grown by up to ``depth`` px on every side (clipped to
-    the image, like ``tile.grown(depth, grid.shape)``), the margin taken from the
-    neighbours' :func:`edge_strips`.
-
-    ``edges`` holds the strips of the tiles ``[ty - 1 .. ty + 1] x [tx - 1 .. tx + 1]``
-    that exist (shape (rows, cols, 4, depth, length)); every core side must be at
-    least ``depth``."""
-    ty, tx = tile.index
-    window = tile.grown(depth, grid.shape)
-    (r0, r1), (c0, c1) = [(s.start, s.stop) for s in tile.core]
-    top, bottom = r0 - window[0].start, window[0].stop - r1
-    left, right = c0 - window[1].start, window[1].stop - c1
-    h, w = r1 - r0, c1 - c0
-    out = np.zeros((top + h + bottom, left + w + right), dtype=core.dtype)
-    out[top:top + h, left:left + w] = core
-    oy, ox = max(ty - 1, 0), max(tx - 1, 0)
-
-    def strip(dy, dx, side):
-        return edges[ty + dy - oy, tx + dx - ox, side]
-
-    width_left = int(grid.col_edges[tx] - grid.col_edges[tx - 1]) if tx > 0 else 0
-    rows_top, rows_bottom = slice(depth - top, depth), slice(0, bottom)
-    cols_left = slice(width_left - left, width_left)
-    if top:
-        out[:top, left:left + w] = strip(-1, 0, 1)[rows_top, :w]
-        if left:
-            out[:top, :left] = strip(-1, -1, 1)[rows_top, cols_left]
-        if right:
-            out[:top, left + w:] = strip(-1, 1, 1)[rows_top, :right]
-    if bottom:
-        out[top + h:, left:left + w] = strip(1, 0, 0)[rows_bottom, :w]
-        if left:
-            out[top + h:, :left] = strip(1, -1, 0)[rows_bottom, cols_left]
-        if right:
-            out[top + h:, left + w:] = strip(1, 1, 0)[rows_bottom, :right]
-    if left:
-        out[top:top + h, :left] = strip(0, -1, 3)[depth - left:, :h].T
-    if right:
-        out[top:top + h, left + w:] = strip(0, 1, 2)[:right, :h].T
-    return out

@@ -144,3 +144,15 @@ def test_prior_trajectory_is_followed():
     assert max(rmse.values()) < 0.3, rmse
     with pytest.raises(ops.ParameterError, match="prior"):
         ops.register(pair.reference, pair.distorted, params=_params(), prior=np.zeros((3, 3)))
+
+
+def test_nan_in_the_reference_is_nodata():
+    pair = ops.synthesize_pair((128, 128), motion="translation", changes=0, noise=0.002, seed=2)
+    reference = pair.reference.copy()
+    reference[:20, 30:90] = np.nan
+    as_nan = ops.register(reference, pair.distorted, params=_params(("tx", "ty")))
+    as_mask = ops.register(np.nan_to_num(reference), pair.distorted, params=_params(("tx", "ty")),
+                           reference_valid=np.isfinite(reference))
+    assert not as_nan.valid.all()
+    np.testing.assert_array_equal(as_nan.registered, as_mask.registered)
+    np.testing.assert_array_equal(as_nan.trajectory, as_mask.trajectory)

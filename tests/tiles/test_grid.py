@@ -8,9 +8,7 @@ from ops import ParameterError
 from tiles import (
     TileGrid,
     TileLabels,
-    edge_strips,
     merge_tile_labels,
-    padded_from_edges,
 )
 
 
@@ -66,18 +64,20 @@ def test_seam_merge_equals_whole_image_labelling():
         assert (whole == a).sum() == area[b - 1]
 
 
-@pytest.mark.parametrize("shape, tile", [((300, 410), 96), ((128, 128), 64), ((100, 260), 48)])
-def test_margins_from_neighbour_edge_strips_equal_the_image(shape, tile):
-    image = np.random.default_rng(0).random(shape).astype(np.float32)
-    grid = TileGrid(shape, tile, 0)
-    depth = 8
-    ny, nx = grid.grid_shape
-    length = grid.core_sides[1]
-    edges = np.zeros((ny, nx, 4, depth, length), np.float32)
-    for t in grid:
-        edges[t.index] = edge_strips(image[t.core], depth, length)
-    for t in grid:
-        ty, tx = t.index
-        block = edges[max(ty - 1, 0):ty + 2, max(tx - 1, 0):tx + 2]
-        padded = padded_from_edges(image[t.core], block, grid, t, depth)
-        np.testing.assert_array_equal(padded, image[t.grown(depth, shape)])
+@pytest.mark.parametrize("shape, tile", [((1000, 1100), 256), ((8192, 8192), 512), ((1100, 300), 240),
+                                         ((700, 700), 100), ((96, 96), 64)])
+@pytest.mark.parametrize("factor", [1, 2, 3])
+def test_blocks_are_unions_of_tiles(shape, tile, factor):
+    grid = TileGrid(shape, tile, 30)
+    blocks = grid.coarsened(factor)
+    assert blocks.halo == grid.halo
+    assert set(blocks.row_edges) <= set(grid.row_edges) and set(blocks.col_edges) <= set(grid.col_edges)
+    count = np.zeros(shape, int)
+    for b in blocks:
+        for ty, tx in grid.covering(b.core):  # every tile under a block lies inside it
+            t = grid[ty, tx]
+            assert all(c.start >= s.start and c.stop <= s.stop for c, s in zip(t.core, b.core))
+            count[t.core] += 1
+    assert (count == 1).all()  # so each tile belongs to exactly one block
+    with pytest.raises(ParameterError, match="factor"):
+        grid.coarsened(0)
