@@ -282,12 +282,16 @@ def _lookup(mask, hom, ref_shape, ref_origin, dist_origin, iterations):
             xg = u + ref_origin[1]
             row = yg - dist_origin[0]
             xs = 0.0
+            ri = min(max(int(round(row)), 0), hd - 1)
             for _ in range(iterations):
-                ri = min(max(int(round(row)), 0), hd - 1)
                 h = hom[ri]
                 den = h[2, 0] * xg + h[2, 1] * yg + h[2, 2]
                 xs = (h[0, 0] * xg + h[0, 1] * yg + h[0, 2]) / den
                 row = (h[1, 0] * xg + h[1, 1] * yg + h[1, 2]) / den - dist_origin[0]
+                nxt = min(max(int(round(row)), 0), hd - 1)
+                if nxt == ri:  # a fixed point: further iterations repeat this one exactly
+                    break
+                ri = nxt
             col = xs - dist_origin[1]
             ri, ci = int(round(row)), int(round(col))
             if 0 <= ri < hd and 0 <= ci < wd:

@@ -232,37 +232,54 @@ def _peak_rss(cmd):
     return stdout, peak / 1e6, time.perf_counter() - start
 
 
-def bench_scale(workdir, *, sizes=(2048, 4096, 8192), tile=None):
+def bench_scale(workdir, *, sizes=(2048, 4096, 8192), tiles=(None, 512)):
+    """Each size with each tile size (None: detect's default).  The default
+    switches from 512 to 1024 px at 4096^2, so one fixed size shows how memory
+    follows the image alone."""
     out = {}
     for size in sizes:
         directory = Path(workdir, f"scale_{size}")
         _pair_files(directory, size, changes=max(8, size * size // 100000))
-        store = Path(workdir, f"scale_{size}.zarr")
-        cmd = [sys.executable, "-m", "pipeline.cli", "-q", "detect", str(directory / "reference.tif"),
-               str(directory / "distorted.tif"), "-o", str(store), "--overwrite", "--json"]
-        if tile:
-            cmd += ["--tile-size", str(tile)]
-        stdout, peak, wall = _peak_rss(cmd)
-        s = json.loads(stdout)
-        t = s["timings"]
-        workers = os.cpu_count() or 1
-        kernel_rate = size * size / 1e6 / (t["kernel_s_sum"] / workers)
-        # scheduling and I/O: wall time not spent computing in some task
-        compute = (t["kernel_s_sum"] + t["changes_compute_s_sum"]) / workers
-        scores = evaluate(store, directory)
-        out[size] = {"peak_rss_mb": peak, "megapixels_per_s": s["megapixels_per_s"],
-                     "kernel_megapixels_per_s": kernel_rate, "overhead_fraction": 1 - s["megapixels_per_s"] / kernel_rate,
-                     "scheduling_io_fraction": 1 - compute / t["total_s"], "timings": t,
-                     "tasks_per_tile": s["tasks_per_tile"], "tiles": s["tiles"], "tile_size": s["tile_size"], "halo": s["halo"],
-                     "seconds": t["total_s"], "f_measure": scores["changes"]["f_measure"]}
-        r = out[size]
-        _echo(f"scale {size} x {size}: peak RSS {r['peak_rss_mb']:.0f} MB, {r['megapixels_per_s']:.2f} MP/s end to "
-              f"end vs {r['kernel_megapixels_per_s']:.2f} MP/s registration kernel rate x {workers} workers "
-              f"(everything else {100 * r['overhead_fraction']:.1f} %; scheduling and I/O alone "
-              f"{100 * r['scheduling_io_fraction']:.1f} %: ingest {t['ingest_s']:.1f} s, change masks "
-              f"{t['changes_s']:.1f} s), {r['tasks_per_tile']:.1f} tasks/tile, "
-              f"{r['tiles'][0]}x{r['tiles'][1]} tiles of {r['tile_size']} px, halo {r['halo']} px, F {r['f_measure']:.3f}, "
-              f"{r['seconds']:.0f} s")
+        for tile in tiles:
+            label = f"{tile}-px tiles" if tile else "default tiles"
+            out.setdefault(label, {})
+            store = Path(workdir, f"scale_{size}_{tile or 'default'}.zarr")
+            cmd = [sys.executable, "-m", "pipeline.cli", "-q", "detect", str(directory / "reference.tif"),
+                   str(directory / "distorted.tif"), "-o", str(store), "--overwrite", "--json"]
+            if tile:
+                cmd += ["--tile-size", str(tile)]
+            stdout, peak, wall = _peak_rss(cmd)
+            s = json.loads(stdout)
+            t = s["timings"]
+            workers = os.cpu_count() or 1
+            megapixels = size * size / 1e6
+            # the per-tile kernels: registration, and the change masks (labels, holes,
+            # mapping to the reference); what the run spends beyond them is
+            # scheduling and I/O (ingest, zarr reads and writes, idle workers)
+            compute = (t["kernel_s_sum"] + t["changes_compute_s_sum"]) / workers
+            kernel_rate = megapixels / compute
+            registration_rate = megapixels / (t["kernel_s_sum"] / workers)
+            scores = evaluate(store, directory)
+            shutil.rmtree(store, ignore_errors=True)
+            r = out[label][size] = {
+                "peak_rss_mb": peak, "megapixels_per_s": s["megapixels_per_s"],
+                "kernel_megapixels_per_s": kernel_rate, "scheduling_io_fraction": 1 - compute / t["total_s"],
+                "registration_megapixels_per_s": registration_rate,
+                "beyond_registration_fraction": 1 - s["megapixels_per_s"] / registration_rate, "timings": t,
+                "tasks_per_tile": s["tasks_per_tile"], "tiles": s["tiles"], "tile_size": s["tile_size"],
+                "halo": s["halo"], "seconds": t["total_s"], "f_measure": scores["changes"]["f_measure"]}
+            _echo(f"scale {size} x {size}, {label}: peak RSS {r['peak_rss_mb']:.0f} MB, "
+                  f"{r['megapixels_per_s']:.2f} MP/s end to end vs {r['kernel_megapixels_per_s']:.2f} MP/s per-tile "
+                  f"kernels (registration and change masks) x {workers} workers: scheduling and I/O "
+                  f"{100 * r['scheduling_io_fraction']:.1f} % (ingest {t['ingest_s']:.1f} s, change stage "
+                  f"{t['changes_s']:.1f} s); registration alone {r['registration_megapixels_per_s']:.2f} MP/s (all "
+                  f"else {100 * r['beyond_registration_fraction']:.1f} %); {r['tasks_per_tile']:.1f} tasks/tile, "
+                  f"{r['tiles'][0]}x{r['tiles'][1]} tiles of {r['tile_size']} px, halo {r['halo']} px, "
+                  f"F {r['f_measure']:.3f}, {r['seconds']:.0f} s")
+        shutil.rmtree(directory, ignore_errors=True)
+    for label, runs in out.items():
+        peaks = " / ".join(f"{r['peak_rss_mb']:.0f}" for r in runs.values())
+        _echo(f"scale, {label}: peak RSS {peaks} MB at {' / '.join(f'{n}^2' for n in runs)}")
     return out
 
 
@@ -298,7 +315,7 @@ def run_bench(*, sections=SECTIONS, data=None, quick=False, workdir=None, sizes=
             results["real"] = bench_real(data, tmp, workers=workers)
         if "scale" in sections:
             results["scale"] = bench_scale(tmp, sizes=sizes or ((512, 1024) if quick else (2048, 4096, 8192)),
-                                           tile=tile)
+                                           tiles=(tile,) if tile else (None, 512))
         if "gain" in sections:
             results["gain"] = bench_gain(tmp, size=512 if quick else 2048, workers=workers)
     return results

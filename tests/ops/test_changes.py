@@ -109,6 +109,35 @@ def test_windows_in_a_larger_image(blobs):
     assert window.any()
 
 
+def test_fixed_point_stops_early_with_the_same_answer():
+    """The lookup stops once the row it lands in repeats (every later iteration
+    would repeat the last one): the same mask as always iterating."""
+    from ops import pose_homographies
+
+    rng = np.random.default_rng(3)
+    mask = rng.random((90, 120)) > 0.7
+    camera = Camera.for_shape(mask.shape)
+    rows = np.arange(mask.shape[0])
+    trajectory = np.stack([4 * np.sin(rows / 9.0), 3 * np.cos(rows / 13.0), 1.5 * np.sin(rows / 30.0)], -1)
+    iterations = 4
+    out = changes_to_reference(mask, trajectory, axes=("tx", "ty", "rz"), camera=camera, reference_shape=(80, 110),
+                               reference_origin_yx=(4, 6), iterations=iterations)
+    # every pixel iterated ``iterations`` times, in numpy
+    hom = pose_homographies(trajectory, camera, axes=("tx", "ty", "rz"))
+    yg, xg = np.mgrid[4:84, 6:116].astype(np.float64)
+    row = yg.copy()
+    for _ in range(iterations):
+        h = hom[np.clip(np.round(row).astype(int), 0, mask.shape[0] - 1)]
+        den = h[..., 2, 0] * xg + h[..., 2, 1] * yg + h[..., 2, 2]
+        xs = (h[..., 0, 0] * xg + h[..., 0, 1] * yg + h[..., 0, 2]) / den
+        row = (h[..., 1, 0] * xg + h[..., 1, 1] * yg + h[..., 1, 2]) / den
+    ri, ci = np.round(row).astype(int), np.round(xs).astype(int)
+    inside = (ri >= 0) & (ri < mask.shape[0]) & (ci >= 0) & (ci < mask.shape[1])
+    expected = np.where(inside, mask[np.clip(ri, 0, 89), np.clip(ci, 0, 119)], False)
+    np.testing.assert_array_equal(out.astype(bool), expected)
+    assert 0.2 < expected.mean() < 0.4
+
+
 # ---------------------------------------------------------------- change_threshold
 
 
