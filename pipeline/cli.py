@@ -219,7 +219,8 @@ def evaluate(store, truth_dir, as_json):
 @click.option("--quick", is_flag=True, help="Small sizes: a smoke run in about a minute.")
 @click.option("--sizes", default=None, help="Image sides of the scale section, e.g. 2048,4096,8192.")
 @click.option("--workers", type=int, default=None, help="Local worker threads (default: one per core).")
-@click.option("--tile-size", type=int, default=None, help="Tile side of the scale section [default: detect's].")
+@click.option("--tile-size", type=int, default=None,
+              help="Tile side of the scale section [default: detect's default and 512 px, side by side].")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None, help="Also write results here.")
 def bench(sections, data, quick, sizes, workers, tile_size, json_path):
     """Measure accuracy against the cvxpy oracle, speed, memory and real captures."""
