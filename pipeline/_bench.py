@@ -11,8 +11,8 @@ Sections (``--sections``):
 - ``real``: the rolling-shutter captures of ``--data`` (GS frame against its RS
   frame, no change): registration RMSE of ``detect`` and of ECC.
 - ``scale``: GeoTIFF pairs of growing size through ``rsmb detect`` in a
-  subprocess: peak resident memory, throughput against the per-tile kernel
-  rate, tasks per tile.
+  subprocess, with detect's default tiles and with 512-px tiles: peak resident
+  memory, throughput against the per-tile kernel rate, tasks per tile.
 - ``gain``: a smooth gain ramp 0.7 -> 1.3: per-tile gain error and F-measure.
 """
 
