@@ -305,7 +305,8 @@ class _RowProblem:
         point several of them move this window's pixels by about a pixel or
         less (the nearest whole number of steps, at most 1.5 px).  Halfway to
         an 8192^2 image's corner this halves the start block's poses (2187 ->
-        1377 at 1024-px tiles) with the same trajectory to 1e-5 px."""
+        1377 at 1024-px tiles); the trajectory's error against the truth stays
+        the same (RMSE within 1e-5 px on that image)."""
         stride = np.ones(len(self.axes))
         if "rz" in self.axes:
             h, w = self.dist.shape
