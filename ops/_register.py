@@ -299,21 +299,24 @@ class _RowProblem:
             self.slot_cache[key] = slots
         return slots
 
-    def rotation_stride(self):
+    def rotation_stride(self, coarsen=1):
         """Per axis, how many lattice steps a block solve may skip: rz steps are
         sized for the image's farthest pixel (1 px there), so near the principal
         point several of them move this window's pixels by about a pixel or
         less (the nearest whole number of steps, at most 4/3 px).  Halfway to
         an 8192^2 image's corner this halves the start block's poses (2187 ->
         1377 at 1024-px tiles); the trajectory's error against the truth stays
-        the same (RMSE within 1e-5 px on that image)."""
+        the same (RMSE within 1e-5 px on that image).  ``coarsen`` multiplies
+        the stride where one step moves those pixels by a pixel or less (not
+        on coarser lattices such as the paper's 0.5 deg)."""
         stride = np.ones(len(self.axes))
         if "rz" in self.axes:
             h, w = self.dist.shape
             radius = np.hypot(np.array([self.dx, self.dx + w - 1]) - self.cx,
                               np.array([self.dy, self.dy + h - 1])[:, None] - self.cy).max()
             d = self.axes.index("rz")
-            stride[d] = max(1.0, np.round(1.0 / (np.radians(self.steps[d]) * max(radius, 1.0))))
+            per_pixel = 1.0 / (np.radians(self.steps[d]) * max(radius, 1.0))  # steps per px of motion there
+            stride[d] = max(1.0, np.round(per_pixel)) * (coarsen if per_pixel >= 0.99 else 1)
         return stride
 
     def shifts(self, poses):
@@ -731,12 +734,13 @@ def _block_rows(informative, mid, count, height):
     return np.sort(rows[np.argsort(np.abs(rows - mid), kind="stable")][:count])
 
 
-def _refine_start(solver, center, rows, uncertainty, iterations=2):
+def _refine_start(solver, center, rows, uncertainty, iterations=2, stride=None):
     """Joint solve of a block of rows around a coarse pose (a grid wide enough
-    for the coarse search's spacing); returns the block's centroid, the blur
-    extent per axis and the cost."""
+    for the coarse search's spacing, lattice steps ``stride`` times the
+    parameters' steps, default :meth:`_RowProblem.rotation_stride`); returns the
+    block's centroid, the blur extent per axis and the cost."""
     params = solver.params
-    steps = np.asarray(params.step) * solver.problem.rotation_stride()
+    steps = np.asarray(params.step) * (solver.problem.rotation_stride() if stride is None else stride)
     coarse_hw = np.maximum(np.maximum(np.asarray(params.half_width) + steps, 4 * steps),
                            np.ceil(np.asarray(uncertainty) / steps) * steps + 2 * steps)
     space = PoseSpace(params.axes, tuple(coarse_hw), tuple(steps))
@@ -755,13 +759,21 @@ def _choose_start(solver, start, rows):
     textures such as ploughed fields give several correlation peaks).
     ``start`` is (candidates, uncertainty per axis)."""
     candidates, uncertainty = start
+    # where rz steps move the block's pixels by a pixel or less, candidates
+    # compete on a lattice twice as coarse in rz (half the poses of the widest
+    # block systems), and the winner is refined on the full lattice around a
+    # pose then known to within one coarse step
+    coarse = solver.problem.rotation_stride(2)
+    coarsened = coarse != solver.problem.rotation_stride()  # per axis
     best = None
-    for center in candidates:  # one solve each decides; the winner is refined once more
-        refined = _refine_start(solver, np.asarray(center, dtype=np.float64), rows, uncertainty, iterations=1)
+    for center in candidates:
+        refined = _refine_start(solver, np.asarray(center, dtype=np.float64), rows, uncertainty, iterations=1,
+                                stride=coarse)
         if best is None or refined[2] < best[2]:
             best = refined
-    if len(candidates) > 1 and np.isfinite(best[2]):
-        best = _refine_start(solver, best[0], rows, uncertainty, iterations=1)
+    if (len(candidates) > 1 or coarsened.any()) and np.isfinite(best[2]):
+        known = np.where(coarsened, np.asarray(solver.params.step) * coarse, uncertainty)
+        best = _refine_start(solver, best[0], rows, known, iterations=1)
     return best[0], best[1]
 
 

@@ -156,3 +156,28 @@ def test_nan_in_the_reference_is_nodata():
     assert not as_nan.valid.all()
     np.testing.assert_array_equal(as_nan.registered, as_mask.registered)
     np.testing.assert_array_equal(as_nan.trajectory, as_mask.trajectory)
+
+
+def test_start_lattice_is_coarsened_only_where_rz_steps_are_fine():
+    """Start candidates compete on rz steps twice the stride only where one step
+    moves the window's pixels by a pixel or less (automatic steps), never on a
+    coarse lattice such as the paper's 0.5 deg."""
+    from ops._register import _RowProblem
+
+    shape = (256, 256)
+    camera = ops.Camera.for_shape((2048, 2048))
+    image = np.zeros(shape, np.float32)
+    axes = ("tx", "ty", "rz")
+
+    def strides(step_rz, origin):
+        problem = _RowProblem(image, image, np.ones(shape, bool), camera, origin, origin, axes,
+                              (1.0, 1.0, step_rz), 4)
+        return problem.rotation_stride(), problem.rotation_stride(2)
+
+    auto = ops.auto_step("rz", camera)
+    corner, coarse = strides(auto, (0, 0))
+    assert list(corner) == [1, 1, 1] and list(coarse) == [1, 1, 2]
+    near, near_coarse = strides(auto, (896, 896))  # next to the principal point: several steps per pixel
+    assert near[2] > 1 and near_coarse[2] == 2 * near[2]
+    paper, paper_coarse = strides(0.5, (0, 0))
+    assert list(paper) == list(paper_coarse) == [1, 1, 1]
