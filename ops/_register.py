@@ -303,12 +303,9 @@ class _RowProblem:
         """Per axis, how many lattice steps a block solve may skip: rz steps are
         sized for the image's farthest pixel (1 px there), so near the principal
         point several of them move this window's pixels by about a pixel or
-        less (the nearest whole number of steps, at most 4/3 px).  Halfway to
-        an 8192^2 image's corner this halves the start block's poses (2187 ->
-        1377 at 1024-px tiles); the trajectory's error against the truth stays
-        the same (RMSE within 1e-5 px on that image).  ``coarsen`` multiplies
-        the stride where one step moves those pixels by a pixel or less (not
-        on coarser lattices such as the paper's 0.5 deg)."""
+        less (the nearest whole number of steps, at most 4/3 px).  ``coarsen``
+        multiplies the stride where one step moves those pixels by a pixel or
+        less (not on coarser lattices such as the paper's 0.5 deg)."""
         stride = np.ones(len(self.axes))
         if "rz" in self.axes:
             h, w = self.dist.shape

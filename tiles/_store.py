@@ -46,6 +46,10 @@ _PARTIAL = ".partial"
 _ZARR_MARKERS = ("zarr.json", ".zgroup", ".zarray")
 
 
+# image arrays of the output store (see ArraySpec.compressed)
+_COMPRESSORS = {"name": "blosc", "configuration": {"cname": "lz4", "clevel": 5, "shuffle": "shuffle"}}
+
+
 @dataclass(frozen=True)
 class ArraySpec:
     """Shape, dtype, chunking and dimension names of one output array.
@@ -257,9 +261,6 @@ def create_result_store(
         abort_result_store(tmp)
         raise
     return group
-
-
-_COMPRESSORS = {"name": "blosc", "configuration": {"cname": "lz4", "clevel": 5, "shuffle": "shuffle"}}
 
 
 def partial_path(path: str | os.PathLike) -> Path:
