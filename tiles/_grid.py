@@ -101,12 +101,6 @@ class TileGrid:
         return _edges(self.shape[1], self.tile)
 
     @property
-    def core_sides(self):
-        """(shortest, longest) side of any core tile, pixels."""
-        sides = np.concatenate([np.diff(self.row_edges), np.diff(self.col_edges)])
-        return int(sides.min()), int(sides.max())
-
-    @property
     def grid_shape(self):
         """(tiles_y, tiles_x)."""
         return (len(self.row_edges) - 1, len(self.col_edges) - 1)
