@@ -76,7 +76,7 @@ class DetectConfig:
 def default_tile(shape):
     """1024-px tiles when the image holds at least 4 x 4 of them, else 512: large
     tiles pay the per-tile start (wide search, start block) a quarter as often
-    (8192^2: 0.93 against 0.67 MP/s), small ones keep both cores busy on small
+    (8192^2: 0.90 against 0.66 MP/s), small ones keep both cores busy on small
     images (2048^2 in four tiles leaves a core idle while the slowest finishes).
     Depends on the shape only, so a ``--resume`` finds the same grid."""
     return 1024 if min(shape) >= 4 * 1024 else 512
