@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ops._errors import InputError, ParameterError
+from rsmb.ops._errors import InputError, ParameterError
 
 __all__ = ["ConfusionCounts", "confusion", "trajectory_rmse"]
 

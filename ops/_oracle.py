@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ops._errors import InputError, ParameterError, SolverError
+from rsmb.ops._errors import InputError, ParameterError, SolverError
 
 __all__ = [
     "ExactRowSolution",

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 from scipy.spatial import Voronoi
 
-from ops._errors import InputError, ParameterError
+from rsmb.ops._errors import InputError, ParameterError
 
 __all__ = ["aerial_scene", "paste_changes"]
 

@@ -15,7 +15,7 @@ import numpy as np
 from skimage.filters import apply_hysteresis_threshold
 from skimage.morphology import remove_small_holes, remove_small_objects
 
-from ops._errors import InputError, ParameterError
+from rsmb.ops._errors import InputError, ParameterError
 
 __all__ = ["kapur_threshold", "kapur_threshold_histogram", "clean_mask", "hysteresis_mask"]
 

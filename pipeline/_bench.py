@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-import ops
-import tiles
+from rsmb import ops
+from rsmb import tiles
 
 from ._detect import DetectConfig, default_tile, detect
 from ._evaluate import evaluate
@@ -250,7 +250,7 @@ def bench_scale(workdir, *, sizes=(2048, 4096, 8192), tiles=(None, 512)):
                 _echo(f"scale {size} x {size}, {label}: the run above ({side}-px tiles)")
                 continue
             store = Path(workdir, f"scale_{size}_{tile or 'default'}.zarr")
-            cmd = [sys.executable, "-m", "pipeline.cli", "-q", "detect", str(directory / "reference.tif"),
+            cmd = [sys.executable, "-m", "rsmb", "-q", "detect", str(directory / "reference.tif"),
                    str(directory / "distorted.tif"), "-o", str(store), "--overwrite", "--json"]
             if tile:
                 cmd += ["--tile-size", str(tile)]

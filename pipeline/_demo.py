@@ -11,8 +11,8 @@ import json
 import logging
 from pathlib import Path
 
-import ops
-from ops import InputError
+from rsmb import ops
+from rsmb.ops import InputError
 
 from ._detect import DetectConfig, detect
 from ._evaluate import evaluate

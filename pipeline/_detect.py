@@ -30,9 +30,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-import ops
-import tiles
-from ops import ChangeParams, InputError, RegistrationParams
+from rsmb import ops
+from rsmb import tiles
+from rsmb.ops import ChangeParams, InputError, RegistrationParams
 
 from . import _tasks
 from ._scheduler import open_runner

@@ -2,9 +2,9 @@
 
 import numpy as np
 
-import ops
-import tiles
-from ops import InputError
+from rsmb import ops
+from rsmb import tiles
+from rsmb.ops import InputError
 
 from ._synth import read_truth
 

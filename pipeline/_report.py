@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-import tiles
-from ops import InputError, ParameterError
+from rsmb import tiles
+from rsmb.ops import InputError, ParameterError
 
 __all__ = ["DEFAULT_MAX_PIXELS", "FIGURES", "block_reduce", "downsample_factor", "overlay_rgb", "write_report"]
 

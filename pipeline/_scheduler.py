@@ -17,7 +17,7 @@ import time
 import dask
 import dask.callbacks
 
-from ops import ParameterError
+from rsmb.ops import ParameterError
 
 __all__ = ["SCHEDULERS", "Runner", "open_runner"]
 

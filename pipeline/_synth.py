@@ -13,11 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-import ops
-import tiles
-from ops import InputError
+from rsmb import ops
+from rsmb import tiles
+from rsmb.ops import InputError
 
-__all__ = ["FORMATS", "write_pair", "read_truth", "DEMO_GEO"]
+__all__ = ["FORMATS", "synth", "write_pair", "read_truth", "DEMO_GEO"]
 
 FORMATS = ("png", "tif", "npy")
 DEMO_GEO = dict(crs="EPSG:32618", transform=(0.5, 0.0, 500000.0, 0.0, -0.5, 4500000.0))
@@ -49,6 +49,24 @@ def _write_image(path, image, fmt):
 
     if not cv2.imwrite(str(path), data):
         raise InputError(f"{path}: could not write the image")
+
+
+def synth(out_dir, *, shape=(512, 512), motion="inplane", shutter="rolling", exposure=None, scale=1.0, gain=1.0,
+          changes=8, noise=0.002, seed=0, fmt="png", overwrite=False):
+    """Make a synthetic pair with its truth (:func:`ops.synthesize_pair`) and
+    write it to ``out_dir`` (:func:`write_pair`); returns the two image paths.
+
+    ``gain`` is a number or a (left, right) pair (a gain varying across the
+    columns); the other parameters are those of :func:`ops.synthesize_pair`.
+    """
+    gain = tuple(gain) if isinstance(gain, (list, tuple)) else gain
+    if isinstance(gain, tuple) and len(gain) == 1:
+        gain = gain[0]
+    pair = ops.synthesize_pair(tuple(shape), motion=motion, shutter=shutter, exposure=exposure, scale=scale,
+                               gain=gain, changes=changes, noise=noise, seed=seed)
+    meta = {"motion": motion, "shutter": shutter, "exposure": exposure, "scale": scale, "gain": gain,
+            "changes": changes, "noise": noise, "seed": seed}
+    return write_pair(out_dir, pair, fmt=fmt, overwrite=overwrite, meta=meta)
 
 
 def write_pair(out_dir, pair, *, fmt="png", overwrite=False, meta=None):

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 import zarr
 
-import ops
-from tiles import ingest_core, read_padded
-from tiles._stitch import TileLabels
+from rsmb import ops
+from rsmb.tiles import ingest_core, read_padded
+from rsmb.tiles._stitch import TileLabels
 
 __all__ = []
 

@@ -26,8 +26,8 @@ import logging
 import time
 from pathlib import Path
 
-import ops
-from ops import InputError
+
+from rsmb.ops import InputError
 
 __all__ = ["run_workflow", "load_workflow"]
 
@@ -105,16 +105,14 @@ def _run_detect(options, defaults, scheduler, overwrite):
 
 
 def _run_synth(o, overwrite):
-    from ._synth import write_pair
+    from ._synth import synth
 
     size = o.get("size", 512)
-    shape = (size, size) if isinstance(size, int) else tuple(size)
-    gain = o.get("gain", 1.0)
-    pair = ops.synthesize_pair(shape, motion=o.get("motion", "inplane"), shutter=o.get("shutter", "rolling"),
-                               exposure=o.get("exposure"), scale=o.get("scale", 1.0),
-                               gain=tuple(gain) if isinstance(gain, list) else gain, changes=o.get("changes", 8),
-                               noise=o.get("noise", 0.002), seed=o.get("seed", 0))
-    ref, dist = write_pair(o["out_dir"], pair, fmt=o.get("format", "png"), overwrite=overwrite, meta=dict(o))
+    ref, dist = synth(o["out_dir"], shape=(size, size) if isinstance(size, int) else tuple(size),
+                      motion=o.get("motion", "inplane"), shutter=o.get("shutter", "rolling"),
+                      exposure=o.get("exposure"), scale=o.get("scale", 1.0), gain=o.get("gain", 1.0),
+                      changes=o.get("changes", 8), noise=o.get("noise", 0.002), seed=o.get("seed", 0),
+                      fmt=o.get("format", "png"), overwrite=overwrite)
     return {"reference": str(ref), "distorted": str(dist)}
 
 

@@ -10,8 +10,8 @@ import sys
 
 import click
 
-import ops
-from ops import RSMBError
+from rsmb import ops
+from rsmb.ops import RSMBError
 
 __all__ = ["main", "cli"]
 
@@ -174,17 +174,14 @@ def _print_summary(summary, as_json):
 @click.option("--overwrite", is_flag=True, help="Write into a non-empty directory.")
 def synth(out_dir, size, motion, shutter, exposure, scale, gain, changes, noise, seed, fmt, overwrite):
     """Make a reference, a distorted capture and the truth in OUT_DIR."""
-    from ._synth import write_pair
+    from ._synth import synth as run
 
     shape = tuple(int(v) for v in _floats(size, "--size"))
     if len(shape) != 2:
         raise click.BadParameter("expected H,W", param_hint="--size")
-    gains = _floats(gain, "--gain")
-    pair = ops.synthesize_pair(shape, motion=motion, shutter=shutter, exposure=exposure, scale=scale,
-                               gain=gains[0] if len(gains) == 1 else gains, changes=changes, noise=noise, seed=seed)
-    meta = {"motion": motion, "shutter": shutter, "exposure": exposure, "scale": scale, "gain": gains,
-            "changes": changes, "noise": noise, "seed": seed}
-    ref, dist = write_pair(out_dir, pair, fmt=fmt, overwrite=overwrite, meta=meta)
+    ref, dist = run(out_dir, shape=shape, motion=motion, shutter=shutter, exposure=exposure, scale=scale,
+                    gain=_floats(gain, "--gain"), changes=changes, noise=noise, seed=seed, fmt=fmt,
+                    overwrite=overwrite)
     click.echo(f"wrote {ref}, {dist} and the truth in {out_dir}/truth")
 
 

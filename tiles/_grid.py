@@ -4,7 +4,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ops import ParameterError
+from rsmb.ops import ParameterError
 
 __all__ = ["TileGrid", "Tile"]
 

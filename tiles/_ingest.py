@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ops import InputError
+from rsmb.ops import InputError
 
 from ._io import read_window
 

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from ops._errors import InputError, ParameterError
+from rsmb.ops._errors import InputError, ParameterError
 
 __all__ = [
     "GeoInfo",

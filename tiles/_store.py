@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from ops._errors import InputError, ParameterError
+from rsmb.ops._errors import InputError, ParameterError
 
 __all__ = [
     "ArraySpec",

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from ops import POSE_AXES, Camera, ParameterError, RSMBError, full_poses, pose_homographies
+from rsmb.ops import POSE_AXES, Camera, ParameterError, RSMBError, full_poses, pose_homographies
 
 
 def _apply(h, xy):

@@ -4,7 +4,7 @@ back to the reference grid, answers known by construction."""
 import numpy as np
 import pytest
 
-from ops import (
+from rsmb.ops import (
     Camera,
     ChangeParams,
     ParameterError,
@@ -14,7 +14,7 @@ from ops import (
     changes_to_reference,
     score_histogram,
 )
-from ops._changes import _RESIDUAL_EDGES
+from rsmb.ops._changes import _RESIDUAL_EDGES
 
 SHAPE = (48, 64)
 BIN_RATIO = float(_RESIDUAL_EDGES[-1] / _RESIDUAL_EDGES[-2])  # log bins: ~1.5 % wide
@@ -112,7 +112,7 @@ def test_windows_in_a_larger_image(blobs):
 def test_fixed_point_stops_early_with_the_same_answer():
     """The lookup stops once the row it lands in repeats (every later iteration
     would repeat the last one): the same mask as always iterating."""
-    from ops import pose_homographies
+    from rsmb.ops import pose_homographies
 
     rng = np.random.default_rng(3)
     mask = rng.random((90, 120)) > 0.7
@@ -245,7 +245,7 @@ def test_change_mask_fills_small_holes():
 
 
 def test_fill_holes_fills_only_small_enclosed_background():
-    from ops import fill_holes
+    from rsmb.ops import fill_holes
 
     mask = np.zeros((40, 60), bool)
     mask[5:25, 5:25] = True

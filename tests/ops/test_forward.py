@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from ops import Camera, CameraPath, ParameterError, pose_homographies, render
+from rsmb.ops import Camera, CameraPath, ParameterError, pose_homographies, render
 
 SHAPE = (72, 96)
 

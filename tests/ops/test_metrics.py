@@ -3,8 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from ops._errors import InputError, ParameterError, RSMBError
-from ops._metrics import ConfusionCounts, confusion, trajectory_rmse
+from rsmb.ops._errors import InputError, ParameterError, RSMBError
+from rsmb.ops._metrics import ConfusionCounts, confusion, trajectory_rmse
 
 
 def test_confusion_counts_known_masks():

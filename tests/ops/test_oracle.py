@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from ops._errors import InputError, ParameterError
-from ops._oracle import (
+from rsmb.ops._errors import InputError, ParameterError
+from rsmb.ops._oracle import (
     ExactRowSolution,
     huber_objective,
     optimal_chi,

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from ops import ParameterError, PoseSpace, RSMBError
+from rsmb.ops import ParameterError, PoseSpace, RSMBError
 
 
 @pytest.fixture

@@ -9,10 +9,10 @@ known gain, optionally a pasted change and noise.
 import numpy as np
 import pytest
 
-import ops
-from ops import Camera, PoseSpace, full_poses, row_objective, solve_row_exact, solve_row_fast
-from ops._register import _RowProblem
-from ops._rowsolve import _build_row, _gather_row, _remap_rows, _solve_huber_nn
+from rsmb import ops
+from rsmb.ops import Camera, PoseSpace, full_poses, row_objective, solve_row_exact, solve_row_fast
+from rsmb.ops._register import _RowProblem
+from rsmb.ops._rowsolve import _build_row, _gather_row, _remap_rows, _solve_huber_nn
 
 SCENE_SHAPE = (128, 384)
 N_PROBLEMS = 24

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
-from ops._errors import InputError, ParameterError
-from ops._scene import aerial_scene, paste_changes
+from rsmb.ops._errors import InputError, ParameterError
+from rsmb.ops._scene import aerial_scene, paste_changes
 
 SHAPE = (384, 512)
 

@@ -4,8 +4,8 @@ import warnings
 import numpy as np
 import pytest
 
-from ops._errors import InputError, ParameterError
-from ops._threshold import (
+from rsmb.ops._errors import InputError, ParameterError
+from rsmb.ops._threshold import (
     _kapur_entropy,
     clean_mask,
     hysteresis_mask,

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-import ops
-from pipeline import write_pair
+from rsmb import ops
+from rsmb.pipeline import write_pair
 
 
 @pytest.fixture(scope="session")

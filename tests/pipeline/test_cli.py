@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-import ops
-from pipeline.cli import cli, main
+from rsmb import ops
+from rsmb.pipeline.cli import cli, main
 
 from .conftest import read_store
 
@@ -107,7 +107,7 @@ def test_bad_parameter_exits_2(tmp_path, small_pair_files, capsys):
 
 def test_global_shutter_and_kapur_options(tmp_path):
     pair = ops.synthesize_pair((128, 160), motion="inplane", shutter="global", changes=4, noise=0.002, seed=9)
-    from pipeline import write_pair
+    from rsmb.pipeline import write_pair
 
     ref, dist = write_pair(tmp_path / "gs", pair, fmt="npy")
     store = tmp_path / "gs.zarr"

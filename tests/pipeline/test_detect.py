@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import ops
-import pipeline
-from pipeline import DetectConfig, detect, write_pair
+from rsmb import ops
+from rsmb import pipeline
+from rsmb.pipeline import DetectConfig, detect, write_pair
 
 from .conftest import inplane_pair_files, read_store
 
@@ -114,7 +114,7 @@ def test_smooth_gain_per_tile(tmp_path):
 
 
 def _rsmb(*args):
-    return [sys.executable, "-m", "pipeline.cli", *map(str, args)]
+    return [sys.executable, "-m", "rsmb", *map(str, args)]
 
 
 def _done_tiles(partial):

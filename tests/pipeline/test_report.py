@@ -8,9 +8,9 @@ import pytest
 import zarr
 from PIL import Image
 
-import pipeline
-from ops import InputError, ParameterError, synthesize_pair
-from pipeline._report import (
+from rsmb import pipeline
+from rsmb.ops import InputError, ParameterError, synthesize_pair
+from rsmb.pipeline._report import (
     DEFAULT_MAX_PIXELS,
     FIGURES,
     block_reduce,
@@ -18,7 +18,7 @@ from pipeline._report import (
     overlay_rgb,
     write_report,
 )
-from pipeline._synth import write_pair
+from rsmb.pipeline._synth import write_pair
 
 SHAPE = (256, 256)
 

@@ -2,7 +2,7 @@
 
 import pytest
 
-from pipeline._scheduler import Runner
+from rsmb.pipeline._scheduler import Runner
 
 
 @pytest.mark.parametrize("scheduler, workers", [("threads", 1), ("synchronous", None)])

@@ -6,9 +6,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-import ops
-from pipeline._workflow import load_workflow
-from pipeline.cli import main
+from rsmb import ops
+from rsmb.pipeline._workflow import load_workflow
+from rsmb.pipeline.cli import main
 
 WORKFLOWS = Path(__file__).resolve().parents[2] / "workflows"
 

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from ops import ParameterError
-from tiles import (
+from rsmb.ops import ParameterError
+from rsmb.tiles import (
     TileGrid,
     TileLabels,
     merge_tile_labels,

@@ -10,8 +10,8 @@ from PIL import Image
 from rasterio.crs import CRS
 from rasterio.transform import Affine
 
-from ops._errors import InputError, RSMBError
-from tiles._io import (
+from rsmb.ops._errors import InputError, RSMBError
+from rsmb.tiles._io import (
     GeoInfo,
     as_float01,
     check_same_shape,

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from ops._errors import InputError, ParameterError
-from tiles._store import (
+from rsmb.ops._errors import InputError, ParameterError
+from rsmb.tiles._store import (
     ArraySpec,
     abort_result_store,
     create_result_store,

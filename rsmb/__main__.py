@@ -1,0 +1,7 @@
+"""``python -m rsmb``: the command line."""
+
+import sys
+
+from rsmb.pipeline.cli import main
+
+sys.exit(main())
