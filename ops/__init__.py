@@ -28,7 +28,8 @@ from ._forward import CameraPath, RenderResult, render
 from ._metrics import ConfusionCounts, confusion, trajectory_rmse
 from ._oracle import ExactRowSolution, huber_objective, optimal_chi, row_objective, solve_row_exact
 from ._posespace import PoseSpace
-from ._register import Registration, RegistrationParams, auto_step, register
+from ._params import RegistrationParams, auto_step
+from ._register import Registration, register
 from ._rowsolve import solve_row_fast
 from ._scene import aerial_scene, paste_changes
 from ._synth import MOTIONS, SyntheticPair, motion_path, synthesize_pair

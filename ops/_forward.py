@@ -13,7 +13,7 @@ import numpy as np
 
 from ._camera import Camera
 from ._errors import ParameterError
-from ._rowsolve import _remap_rows
+from ._warp import _remap_rows
 
 __all__ = ["CameraPath", "RenderResult", "render"]
 

@@ -77,7 +77,7 @@ def _row_problems(data, count, width, seed):
                 g[c:c + 30] = np.clip(g[c:c + 30] + 0.4, 0, 1.5)
             space = params.resolved(camera).space
             index, poses = space.grid(pose)
-            problem = ops._register._RowProblem(ref, g[None, :], np.ones((1, width), bool), camera, (-40, -40),
+            problem = ops._rowproblem._RowProblem(ref, g[None, :], np.ones((1, width), bool), camera, (-40, -40),
                                                 (0, 0), params.axes, space.step, 8)
             a, gg, valid = problem.build([0], index, poses)
             problems.append((name, a.T.copy(), gg))

@@ -162,7 +162,7 @@ def test_start_lattice_is_coarsened_only_where_rz_steps_are_fine():
     """Start candidates compete on rz steps twice the stride only where one step
     moves the window's pixels by a pixel or less (automatic steps), never on a
     coarse lattice such as the paper's 0.5 deg."""
-    from rsmb.ops._register import _RowProblem
+    from rsmb.ops._rowproblem import _RowProblem
 
     shape = (256, 256)
     camera = ops.Camera.for_shape((2048, 2048))

@@ -11,8 +11,9 @@ import pytest
 
 from rsmb import ops
 from rsmb.ops import Camera, PoseSpace, full_poses, row_objective, solve_row_exact, solve_row_fast
-from rsmb.ops._register import _RowProblem
-from rsmb.ops._rowsolve import _build_row, _gather_row, _remap_rows, _solve_huber_nn
+from rsmb.ops._rowproblem import _RowProblem
+from rsmb.ops._rowsolve import _solve_huber_nn
+from rsmb.ops._warp import _build_row, _gather_row, _remap_rows
 
 SCENE_SHAPE = (128, 384)
 N_PROBLEMS = 24

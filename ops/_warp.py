@@ -1,0 +1,171 @@
+"""Warps of the reference by camera poses, in compiled code: the sampling map of
+a pose, one row warped by many poses (the columns of ``F_i``), rows gathered
+from pre-warped images by whole-pixel shifts, whole windows warped by one pose,
+and the exposure average of the forward model.
+
+Shared by the forward model (:mod:`ops._forward`) and the row solvers, so that
+both use one camera model; bilinear interpolation, NaN marks nodata.
+"""
+
+import math
+
+import numba
+import numpy as np
+
+__all__ = []
+
+_JIT = dict(nogil=True, cache=True)
+
+
+@numba.njit(**_JIT)
+def _inverse_map(pose6, focal, cx, cy):
+    """Coefficients of the sampling map of one pose (observed -> reference).
+
+    Returns (m, tx, ty, scale) with m the 3x3 matrix K R^T K^-1 (row-major, 9).
+    """
+    tx, ty, s = pose6[0], pose6[1], pose6[2]
+    ax, ay, az = math.radians(pose6[3]), math.radians(pose6[4]), math.radians(pose6[5])
+    cxr, sxr, cyr, syr, czr, szr = math.cos(ax), math.sin(ax), math.cos(ay), math.sin(ay), math.cos(az), math.sin(az)
+    # R = Rz Ry Rx (see ops._camera._rotations)
+    r = np.empty((3, 3))
+    # Ry Rx
+    a00, a01, a02 = cyr, -syr * sxr, syr * cxr
+    a10, a11, a12 = 0.0, cxr, sxr
+    a20, a21, a22 = -syr, -cyr * sxr, cyr * cxr
+    r[0, 0] = czr * a00 - szr * a10
+    r[0, 1] = czr * a01 - szr * a11
+    r[0, 2] = czr * a02 - szr * a12
+    r[1, 0] = szr * a00 + czr * a10
+    r[1, 1] = szr * a01 + czr * a11
+    r[1, 2] = szr * a02 + czr * a12
+    r[2, 0], r[2, 1], r[2, 2] = a20, a21, a22
+    m = np.empty(9)
+    # K R^T K^-1
+    m[0], m[1], m[2] = r[0, 0], r[1, 0], r[2, 0] * focal
+    m[3], m[4], m[5] = r[0, 1], r[1, 1], r[2, 1] * focal
+    m[6], m[7], m[8] = r[0, 2] / focal, r[1, 2] / focal, r[2, 2]
+    return m, tx, ty, 1.0 + s
+
+
+@numba.njit(**_JIT)
+def _build_row(ref, y, x0, poses6, focal, cx, cy, out):
+    """Fill ``out`` (K, N) with row ``y`` of the reference warped by each pose.
+
+    ``ref`` (Hr, Wr) float32 may hold NaN for nodata.  ``y``, ``x0``, ``cx``,
+    ``cy`` are in the reference window's pixel frame.  Returns uint8 (N,) with 1
+    where every pose samples valid reference data; columns of invalid pixels are
+    set to zero.
+    """
+    k_count, n = out.shape
+    hr, wr = ref.shape
+    valid = np.ones(n, dtype=np.uint8)
+    for k in range(k_count):
+        m, tx, ty, sc = _inverse_map(poses6[k], focal, cx, cy)
+        uy = (y - cy - ty) / sc
+        # h = m @ (ux, uy, 1), ux = (x - cx - tx) / sc, linear in x
+        ux0 = (x0 - cx - tx) / sc
+        du = 1.0 / sc
+        h0 = m[0] * ux0 + m[1] * uy + m[2]
+        h1 = m[3] * ux0 + m[4] * uy + m[5]
+        h2 = m[6] * ux0 + m[7] * uy + m[8]
+        d0, d1, d2 = m[0] * du, m[3] * du, m[6] * du
+        for j in range(n):
+            inv = 1.0 / (h2 + j * d2)
+            u = (h0 + j * d0) * inv + cx
+            v = (h1 + j * d1) * inv + cy
+            if u >= 0.0 and v >= 0.0 and u <= wr - 1 and v <= hr - 1:
+                iu = min(int(u), wr - 2)
+                iv = min(int(v), hr - 2)
+                fu = u - iu
+                fv = v - iv
+                top = ref[iv, iu] * (1.0 - fu) + ref[iv, iu + 1] * fu
+                bot = ref[iv + 1, iu] * (1.0 - fu) + ref[iv + 1, iu + 1] * fu
+                val = top * (1.0 - fv) + bot * fv
+                if math.isnan(val):
+                    valid[j] = 0
+                    out[k, j] = 0.0
+                else:
+                    out[k, j] = val
+            else:
+                valid[j] = 0
+                out[k, j] = 0.0
+    for j in range(n):
+        if valid[j] == 0:
+            for k in range(k_count):
+                out[k, j] = 0.0
+    return valid
+
+
+@numba.njit(**_JIT)
+def _remap_rows(src, poses, focal, cx, cy, width, oy, ox):
+    """Average over each row's pose samples of the warped source row.
+
+    ``poses`` (H, S, 6); ``cx``, ``cy`` the principal point in the source frame;
+    row ``i`` of the output is row ``i + oy`` of the source frame, column ``j``
+    is ``j + ox``.  Returns (image float32 (H, W), valid uint8 (H, W)).
+    """
+    h, s = poses.shape[0], poses.shape[1]
+    out = np.empty((h, width), dtype=np.float32)
+    valid = np.empty((h, width), dtype=np.uint8)
+    buf = np.empty((s, width), dtype=np.float32)
+    for i in range(h):
+        valid[i] = _build_row(src, i + oy, ox, poses[i], focal, cx, cy, buf)
+        for j in range(width):
+            acc = 0.0
+            for q in range(s):
+                acc += buf[q, j]
+            out[i, j] = acc / s
+    return out, valid
+
+
+@numba.njit(**_JIT)
+def _gather_row(stack, slot, shift_y, shift_x, y, x0, out):
+    """Fill ``out`` (K, N) from pre-warped images: pose k reads
+    ``stack[slot[k], y - shift_y[k], x0 + j - shift_x[k]]``.
+
+    This is exact for poses whose translation is a whole number of pixels: the
+    translation is applied last in the camera model, so a translated pose samples
+    the image warped by the rest of the pose at a shifted pixel.  NaN marks
+    invalid data.  Returns uint8 (N,) validity as :func:`_build_row`.
+    """
+    k_count, n = out.shape
+    hr, wr = stack.shape[1], stack.shape[2]
+    valid = np.ones(n, dtype=np.uint8)
+    for k in range(k_count):
+        r = y - shift_y[k]
+        c0 = x0 - shift_x[k]
+        if r < 0 or r >= hr:
+            for j in range(n):
+                valid[j] = 0
+            continue
+        img = stack[slot[k], r]
+        for j in range(n):
+            c = c0 + j
+            if c < 0 or c >= wr:
+                valid[j] = 0
+                out[k, j] = 0.0
+            else:
+                v = img[c]
+                if math.isnan(v):
+                    valid[j] = 0
+                    out[k, j] = 0.0
+                else:
+                    out[k, j] = v
+    for j in range(n):
+        if valid[j] == 0:
+            for k in range(k_count):
+                out[k, j] = 0.0
+    return valid
+
+
+@numba.njit(**_JIT)
+def _warp_into(src, pose6, focal, cx, cy, oy, ox, out):
+    """``out`` (R, W) = rows ``oy ..`` (columns ``ox ..``) of ``src`` warped by one
+    pose, NaN where the pose samples outside ``src`` or nodata."""
+    rows, width = out.shape
+    poses = pose6.reshape(1, 6)
+    buf = np.empty((1, width), dtype=np.float32)
+    for q in range(rows):
+        v = _build_row(src, oy + q, ox, poses, focal, cx, cy, buf)
+        for j in range(width):
+            out[q, j] = buf[0, j] if v[j] else np.nan
