@@ -35,7 +35,12 @@ from ._scene import aerial_scene, paste_changes
 from ._synth import MOTIONS, SyntheticPair, motion_path, synthesize_pair
 from ._threshold import clean_mask, hysteresis_mask, kapur_threshold, kapur_threshold_histogram
 
+#: Version of the kernels' results: raised whenever a change to ops alters what
+#: a run computes, so that ``--resume`` never mixes tiles of two versions.
+KERNEL_VERSION = 1
+
 __all__ = [
+    "KERNEL_VERSION",
     "AXIS_UNITS",
     "POSE_AXES",
     "Camera",

@@ -1,8 +1,9 @@
 """Running rsmb: dask scheduling of tile tasks, the click CLI, demo, reports."""
 
-from ._detect import VERSION, DetectConfig, default_overlap, detect
-from ._evaluate import evaluate
+from ._detect import VERSION, DetectConfig, DetectResult, default_overlap, detect
+from ._evaluate import Evaluation, evaluate
 from ._report import write_report
-from ._synth import read_truth, write_pair
+from ._synth import PairPaths, read_truth, synth, write_pair
 
-__all__ = ["VERSION", "DetectConfig", "default_overlap", "detect", "evaluate", "read_truth", "write_pair", "write_report"]
+__all__ = ["VERSION", "DetectConfig", "DetectResult", "Evaluation", "PairPaths", "default_overlap", "detect", "evaluate",
+           "read_truth", "synth", "write_pair", "write_report"]

@@ -142,8 +142,8 @@ def bench_speed(workdir, *, size=2048, workers=None):
     for name, config in cases.items():
         s = _detect_rate(ref, dist, Path(workdir, f"{name}.zarr"), config, workers)
         scores = evaluate(Path(workdir, f"{name}.zarr"), Path(workdir, "speed_inplane"))
-        out[name] = {"megapixels_per_s": s["megapixels_per_s"], "seconds": s["timings"]["total_s"],
-                     "f_measure": scores["changes"]["f_measure"]}
+        out[name] = {"megapixels_per_s": s.megapixels_per_s, "seconds": s.timings["total_s"],
+                     "f_measure": scores.changes.f_measure}
     t = time.perf_counter()
     ecc = ops.ecc_homography(pair.reference, pair.distorted)
     out["ecc_seconds"] = time.perf_counter() - t
@@ -155,8 +155,8 @@ def bench_speed(workdir, *, size=2048, workers=None):
         _, ref_t, dist_t = _pair_files(Path(workdir, f"speed_translation_{side}"), side, motion="translation",
                                        changes=30)
         s = _detect_rate(ref_t, dist_t, Path(workdir, f"translation_{side}.zarr"), config, workers)
-        out[f"translation_only_{side}"] = {"megapixels_per_s": s["megapixels_per_s"],
-                                           "seconds": s["timings"]["total_s"]}
+        out[f"translation_only_{side}"] = {"megapixels_per_s": s.megapixels_per_s,
+                                           "seconds": s.timings["total_s"]}
         shutil.rmtree(Path(workdir, f"speed_translation_{side}"), ignore_errors=True)
         shutil.rmtree(Path(workdir, f"translation_{side}.zarr"), ignore_errors=True)
     out["translation_only"] = out[f"translation_only_{size}"]
@@ -196,7 +196,7 @@ def bench_real(data, workdir, *, workers=None):
         rmse = lambda a: float(np.sqrt(np.mean((a[common] - distorted[common]) ** 2)) * 255)  # noqa: E731
         out[name] = {"rsmb_rmse_255": rmse(registered), "ecc_rmse_255": rmse(ecc.registered),
                      "identity_rmse_255": rmse(reference), "common_fraction": float(common.mean()),
-                     "false_change_fraction": s["changed_fraction"], "rsmb_seconds": s["timings"]["total_s"],
+                     "false_change_fraction": s.changed_fraction, "rsmb_seconds": s.timings["total_s"],
                      "ecc_seconds": ecc_s}
         r = out[name]
         _echo(f"real {name}: registration RMSE rsmb {r['rsmb_rmse_255']:.2f} vs ECC homography "
@@ -272,7 +272,7 @@ def bench_scale(workdir, *, sizes=(2048, 4096, 8192), tiles=(None, 512)):
                 "registration_megapixels_per_s": registration_rate,
                 "beyond_registration_fraction": 1 - s["megapixels_per_s"] / registration_rate, "timings": t,
                 "tasks_per_tile": s["tasks_per_tile"], "tiles": s["tiles"], "tile_size": s["tile_size"],
-                "halo": s["halo"], "seconds": t["total_s"], "f_measure": scores["changes"]["f_measure"]}
+                "halo": s["halo"], "seconds": t["total_s"], "f_measure": scores.changes.f_measure}
             _echo(f"scale {size} x {size}, {label}: peak RSS {r['peak_rss_mb']:.0f} MB, "
                   f"{r['megapixels_per_s']:.2f} MP/s end to end vs {r['kernel_megapixels_per_s']:.2f} MP/s per-tile "
                   f"kernels (registration and change masks) x {workers} workers: scheduling and I/O "
@@ -297,8 +297,8 @@ def bench_gain(workdir, *, size=2048, workers=None):
     store = Path(workdir, "gain.zarr")
     detect(directory / "reference.tif", directory / "distorted.tif", store, workers=workers, overwrite=True)
     scores = evaluate(store, directory)
-    out = {"max_relative_gain_error": scores["gain"]["max_relative_error"],
-           "f_measure": scores["changes"]["f_measure"]}
+    out = {"max_relative_gain_error": scores.gain["max_relative_error"],
+           "f_measure": scores.changes.f_measure}
     _echo(f"gain ramp 0.7 -> 1.3 ({size} x {size}): per-tile gain error max "
           f"{100 * out['max_relative_gain_error']:.2f} %, F {out['f_measure']:.3f}")
     return out

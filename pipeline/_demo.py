@@ -47,5 +47,5 @@ def run_demo(out_dir="rsmb-demo", *, size=2048, tile=None, changes=40, seed=0, s
     from ._report import write_report
 
     report = write_report(store, out / "report", overwrite=True)
-    (out / "scores.json").write_text(json.dumps(scores, indent=2, default=str))
+    (out / "scores.json").write_text(json.dumps(scores.as_dict(), indent=2))
     return {"report": str(report), "store": str(store), "summary": summary, "scores": scores}

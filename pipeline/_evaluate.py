@@ -1,5 +1,7 @@
 """``rsmb evaluate``: scores of an output store against a synthetic truth."""
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from rsmb import ops
@@ -8,7 +10,35 @@ from rsmb.ops import InputError
 
 from ._synth import read_truth
 
-__all__ = ["evaluate"]
+__all__ = ["Evaluation", "evaluate"]
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Scores of one store against its truth (see :func:`evaluate`).
+
+    Attributes
+    ----------
+    changes, changes_reference : ops.ConfusionCounts
+        Pooled over the whole image, in the capture and the reference grid.
+    trajectory : dict
+        Per estimated axis, ``{"rmse", "max_abs", ...}`` (axis units).
+    gain : dict
+        ``max_relative_error``, ``mean_relative_error`` and the per-tile maps.
+    registration_rmse_255 : float or None
+        Registered against the capture outside true changes, 0..255 units.
+    """
+
+    changes: ops.ConfusionCounts
+    changes_reference: ops.ConfusionCounts
+    trajectory: dict
+    gain: dict
+    registration_rmse_255: float | None
+
+    def as_dict(self):
+        """JSON-ready dict (the confusion counts with their ratios)."""
+        return {"changes": self.changes.as_dict(), "changes_reference": self.changes_reference.as_dict(),
+                "trajectory": self.trajectory, "gain": self.gain, "registration_rmse_255": self.registration_rmse_255}
 
 
 def _tile_means(values, row_edges, col_edges):
@@ -24,7 +54,7 @@ def evaluate(store, truth_dir):
 
     Returns
     -------
-    dict
+    Evaluation
         ``changes`` and ``changes_reference`` (precision, recall, PWC, F-measure,
         IoU, pooled over the whole image), ``trajectory`` (RMSE and max error per
         estimated axis, rows whose pixels were all valid), ``gain`` (per-tile
@@ -41,9 +71,8 @@ def evaluate(store, truth_dir):
     attrs = group.attrs.asdict()
     axes = list(group["trajectory"].attrs["pose_axes"])
     out = {
-        "changes": ops.confusion(mask, truth["change_mask"]).as_dict(),
-        "changes_reference": ops.confusion(group["change_mask_reference"][:] > 0,
-                                           truth["change_mask_reference"]).as_dict(),
+        "changes": ops.confusion(mask, truth["change_mask"]),
+        "changes_reference": ops.confusion(group["change_mask_reference"][:] > 0, truth["change_mask_reference"]),
     }
     idx = [ops.POSE_AXES.index(a) for a in axes]
     registered = group["registered"][:]
@@ -62,4 +91,4 @@ def evaluate(store, truth_dir):
         out["registration_rmse_255"] = float(np.sqrt(np.mean((registered[keep] - distorted[keep]) ** 2)) * 255)
     except InputError:
         out["registration_rmse_255"] = None
-    return out
+    return Evaluation(**out)

@@ -10,6 +10,7 @@ that the geospatial path can be exercised end to end.
 
 import json
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -17,10 +18,17 @@ from rsmb import ops
 from rsmb import tiles
 from rsmb.ops import InputError
 
-__all__ = ["FORMATS", "synth", "write_pair", "read_truth", "DEMO_GEO"]
+__all__ = ["FORMATS", "PairPaths", "synth", "write_pair", "read_truth", "DEMO_GEO"]
 
 FORMATS = ("png", "tif", "npy")
 DEMO_GEO = dict(crs="EPSG:32618", transform=(0.5, 0.0, 500000.0, 0.0, -0.5, 4500000.0))
+
+
+class PairPaths(NamedTuple):
+    """The two images of a written pair (the truth is in ``<out_dir>/truth``)."""
+
+    reference: Path
+    distorted: Path
 
 
 def _geo():
@@ -54,7 +62,7 @@ def _write_image(path, image, fmt):
 def synth(out_dir, *, shape=(512, 512), motion="inplane", shutter="rolling", exposure=None, scale=1.0, gain=1.0,
           changes=8, noise=0.002, seed=0, fmt="png", overwrite=False):
     """Make a synthetic pair with its truth (:func:`ops.synthesize_pair`) and
-    write it to ``out_dir`` (:func:`write_pair`); returns the two image paths.
+    write it to ``out_dir`` (:func:`write_pair`); returns its :class:`PairPaths`.
 
     ``gain`` is a number or a (left, right) pair (a gain varying across the
     columns); the other parameters are those of :func:`ops.synthesize_pair`.
@@ -70,7 +78,7 @@ def synth(out_dir, *, shape=(512, 512), motion="inplane", shutter="rolling", exp
 
 
 def write_pair(out_dir, pair, *, fmt="png", overwrite=False, meta=None):
-    """Write a :class:`ops.SyntheticPair` to ``out_dir``; returns the image paths."""
+    """Write a :class:`ops.SyntheticPair` to ``out_dir``; returns its :class:`PairPaths`."""
     import cv2
 
     if fmt not in FORMATS:
@@ -92,7 +100,7 @@ def write_pair(out_dir, pair, *, fmt="png", overwrite=False, meta=None):
             "gain_mean": float(pair.gain.mean()), "changed_fraction": float(pair.change_mask.mean()),
             **(meta or {})}
     (out / "truth" / "truth.json").write_text(json.dumps(tiles.jsonable(info), indent=2))
-    return ref_path, dist_path
+    return PairPaths(ref_path, dist_path)
 
 
 def read_truth(truth_dir):

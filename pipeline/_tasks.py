@@ -13,10 +13,67 @@ import numpy as np
 import zarr
 
 from rsmb import ops
+from rsmb import tiles
 from rsmb.tiles import ingest_core, read_padded
 from rsmb.tiles._stitch import TileLabels
 
 __all__ = []
+
+
+def _specs(grid, dims):
+    h, w = grid.shape
+    t = grid.tile
+    ny, nx = grid.grid_shape
+    spec = tiles.ArraySpec
+    return {
+        "registered": spec((h, w), "float32", (t, t), ("y", "x"), float("nan")),
+        "change_score": spec((h, w), "float32", (t, t), ("y", "x"), 0.0),
+        "change_mask": spec((h, w), "uint8", (t, t), ("y", "x")),
+        "change_mask_reference": spec((h, w), "uint8", (t, t), ("y", "x")),
+        "trajectory": spec((h, dims), "float32", (t, dims), ("y", "pose_axis"), float("nan")),
+        "tile_trajectory": spec((h, nx, dims), "float32", (h, nx, dims), ("y", "tile_x", "pose_axis"), float("nan")),
+        "tile_row_state": spec((h, nx), "uint8", (h, nx), ("y", "tile_x")),
+        "gain": spec((ny, nx), "float32", (ny, nx), ("tile_y", "tile_x"), float("nan")),
+        "tile_agreement": spec((ny, nx), "float32", (ny, nx), ("tile_y", "tile_x"), float("nan")),
+        # scratch, one chunk per tile, deleted when the run finishes
+        "work/tile_rows": spec((h, nx, dims + 1), "float32", (t, 1, dims + 1), ("y", "tile_x", "column"),
+                               float("nan"), compressed=False),
+        "work/tile_summary": spec((ny, nx, _SUMMARY), "float64", (1, 1, _SUMMARY), ("tile_y", "tile_x", "value"),
+                                  compressed=False),
+        "work/labels": spec((h, w), "int32", (t, t), ("y", "x"), compressed=False),
+        "ingest/reference": spec((h, w), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
+        "ingest/distorted": spec((h, w), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
+    }
+
+
+_HIST = (ops.RESIDUAL_BINS, ops.SCORE_BINS)
+_SUMMARY = sum(_HIST) + 3  # per tile: both histograms, gain, seconds; 1 when done
+
+
+def _tile_results(group):
+    """Per-tile results of stage 1 from the scratch arrays: trajectories (H, nx, D),
+    row states (H, nx), summed histogram, residual histograms (ny, nx, bins),
+    gains (ny, nx)."""
+    rows = group["work/tile_rows"][:]
+    summary = group["work/tile_summary"][:]
+    hist = ops.ScoreHistogram(summary[..., :_HIST[0]].sum((0, 1)).astype(np.int64),
+                              summary[..., _HIST[0]:sum(_HIST)].sum((0, 1)).astype(np.int64))
+    states = np.nan_to_num(rows[..., -1]).astype(np.uint8)
+    return rows[..., :-1].astype(np.float64), states, hist, summary[..., :_HIST[0]], summary[..., -3]
+
+
+def _tile_done(group):
+    """(ny, nx) bool: tiles whose registration finished."""
+    return group["work/tile_summary"][..., -1] == 1
+
+
+def resume_safe(group):
+    """An interrupted run keeps its partial store when some tile finished, so that
+    ``--resume`` can continue it; otherwise the partial store is removed."""
+    try:
+        return bool(_tile_done(group).any())
+    except Exception:  # noqa: BLE001 - store already gone or unreadable
+        return False
 
 
 @dataclass(frozen=True)

@@ -101,7 +101,7 @@ def _run_detect(options, defaults, scheduler, overwrite):
                           int(o["tile_size"]) if o.get("tile_size") else None, o.get("overlap"))
     return detect(o["reference"], o["distorted"], o["output"], config=config, scheduler=scheduler,
                   workers=o.get("workers"), overwrite=overwrite, resume=bool(o.get("resume", False)),
-                  geotiff=o.get("geotiff"))
+                  geotiff=o.get("geotiff")).as_dict()
 
 
 def _run_synth(o, overwrite):
@@ -138,7 +138,7 @@ def run_workflow(path, *, scheduler=None):
         elif kind == "detect":
             result = _run_detect(options, defaults, scheduler, overwrite)
         elif kind == "evaluate":
-            result = evaluate(options["store"], options["truth"])
+            result = evaluate(options["store"], options["truth"]).as_dict()
         else:
             result = {"report": str(write_report(options["store"], options.get("out_dir"), overwrite=True))}
         results.append({"step": number, "kind": kind, "seconds": time.perf_counter() - start, "result": result})

@@ -148,13 +148,12 @@ def detect(reference, distorted, output, axes, half_width, step, search, shutter
 
 def _print_summary(summary, as_json):
     if as_json:
-        click.echo(json.dumps(summary, indent=2, default=str))
+        click.echo(json.dumps(summary.as_dict(), indent=2))
         return
-    t = summary["timings"]
-    click.echo(f"{summary['output']}: {summary['changed_pixels']} changed px in {summary['components']} "
-               f"component(s), threshold {summary['threshold']:.3f}, gain {summary['gain_min']:.3f}.."
-               f"{summary['gain_max']:.3f}, {summary['tiles'][0]}x{summary['tiles'][1]} tiles, "
-               f"{t['total_s']:.1f} s ({summary['megapixels_per_s']:.2f} MP/s)")
+    click.echo(f"{summary.output}: {summary.changed_pixels} changed px in {summary.components} "
+               f"component(s), threshold {summary.threshold:.3f}, gain {summary.gain_min:.3f}.."
+               f"{summary.gain_max:.3f}, {summary.tiles[0]}x{summary.tiles[1]} tiles, "
+               f"{summary.timings['total_s']:.1f} s ({summary.megapixels_per_s:.2f} MP/s)")
 
 
 @cli.command()
@@ -195,17 +194,17 @@ def evaluate(store, truth_dir, as_json):
 
     result = run(store, truth_dir)
     if as_json:
-        click.echo(json.dumps(result, indent=2, default=str))
+        click.echo(json.dumps(result.as_dict(), indent=2))
         return
     for key in ("changes", "changes_reference"):
-        m = result[key]
-        click.echo(f"{key:18s} F {m['f_measure']:.3f}  precision {m['precision']:.3f}  recall {m['recall']:.3f}  "
-                   f"PWC {m['pwc']:.3f} %  IoU {m['iou']:.3f}")
-    for axis, m in result["trajectory"].items():
+        m = getattr(result, key)
+        click.echo(f"{key:18s} F {m.f_measure:.3f}  precision {m.precision:.3f}  recall {m.recall:.3f}  "
+                   f"PWC {m.pwc:.3f} %  IoU {m.iou:.3f}")
+    for axis, m in result.trajectory.items():
         click.echo(f"trajectory {axis:7s} RMSE {m['rmse']:.3f}  max {m['max_abs']:.3f}")
-    click.echo(f"gain               max relative error {result['gain']['max_relative_error']:.4f}")
-    if result["registration_rmse_255"] is not None:
-        click.echo(f"registration RMSE  {result['registration_rmse_255']:.2f} (0..255, outside true changes)")
+    click.echo(f"gain               max relative error {result.gain['max_relative_error']:.4f}")
+    if result.registration_rmse_255 is not None:
+        click.echo(f"registration RMSE  {result.registration_rmse_255:.2f} (0..255, outside true changes)")
 
 
 @cli.command()
@@ -247,10 +246,10 @@ def demo(out_dir, size, tile_size, scheduler, overwrite):
 
     result = run_demo(out_dir, size=size, tile=tile_size, scheduler=scheduler, overwrite=overwrite)
     s, m = result["summary"], result["scores"]
-    click.echo(f"demo: {s['shape'][0]} x {s['shape'][1]} px in {s['timings']['total_s']:.1f} s "
-               f"({s['megapixels_per_s']:.2f} MP/s); changes F {m['changes']['f_measure']:.3f}, "
-               f"precision {m['changes']['precision']:.3f}, recall {m['changes']['recall']:.3f}; "
-               f"per-tile gain error max {100 * m['gain']['max_relative_error']:.2f} %")
+    click.echo(f"demo: {s.shape[0]} x {s.shape[1]} px in {s.timings['total_s']:.1f} s "
+               f"({s.megapixels_per_s:.2f} MP/s); changes F {m.changes.f_measure:.3f}, "
+               f"precision {m.changes.precision:.3f}, recall {m.changes.recall:.3f}; "
+               f"per-tile gain error max {100 * m.gain['max_relative_error']:.2f} %")
     click.echo(f"store:  {result['store']}")
     click.echo(f"report: {result['report']}")
 

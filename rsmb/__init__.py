@@ -14,14 +14,18 @@ imported on first use, so ``import rsmb.ops`` stays light.
 
 import importlib
 
-__all__ = ["detect", "synth", "evaluate", "report", "DetectConfig", "__version__"]
+__all__ = ["detect", "synth", "evaluate", "report", "DetectConfig", "DetectResult", "Evaluation", "PairPaths",
+           "__version__"]
 
 # public name -> (module, attribute)
 _API = {
     "detect": ("rsmb.pipeline._detect", "detect"),
     "DetectConfig": ("rsmb.pipeline._detect", "DetectConfig"),
+    "DetectResult": ("rsmb.pipeline._detect", "DetectResult"),
     "synth": ("rsmb.pipeline._synth", "synth"),
+    "PairPaths": ("rsmb.pipeline._synth", "PairPaths"),
     "evaluate": ("rsmb.pipeline._evaluate", "evaluate"),
+    "Evaluation": ("rsmb.pipeline._evaluate", "Evaluation"),
     "report": ("rsmb.pipeline._report", "write_report"),
 }
 

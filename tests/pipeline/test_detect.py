@@ -55,7 +55,7 @@ def test_tiled_equals_whole(tmp_path, wide_pair, whole_result, tile):
     diff = tiled["trajectory"][rows] - whole["trajectory"][rows]
     assert np.sqrt(np.mean(diff[:, :2] ** 2, axis=0)).max() <= 0.1  # px, tx and ty
     assert ops.confusion(b, pair.change_mask).f_measure >= 0.95
-    assert summary["tasks_per_tile"] <= 8
+    assert summary.tasks_per_tile <= 8
 
 
 def test_object_across_a_four_tile_corner_is_one_component(tmp_path):
@@ -109,8 +109,8 @@ def test_smooth_gain_per_tile(tmp_path):
     store = tmp_path / "gain.zarr"
     detect(ref, dist, store, config=DetectConfig(tile=256))
     scores = pipeline.evaluate(store, tmp_path / "pair")
-    assert scores["gain"]["max_relative_error"] <= 0.03, scores["gain"]
-    assert scores["changes"]["f_measure"] >= 0.9, scores["changes"]
+    assert scores.gain["max_relative_error"] <= 0.03, scores.gain
+    assert scores.changes.f_measure >= 0.9, scores.changes
 
 
 def _rsmb(*args):
