@@ -28,6 +28,8 @@ import dataclasses
 import hashlib
 import json
 import logging
+import os
+import tempfile
 import time
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
@@ -42,7 +44,7 @@ from rsmb.ops import ChangeParams, InputError, RegistrationParams
 from . import _tasks
 from ._tasks import _specs, _tile_done, _tile_results
 from ._fuse import _agreement, _fuse, _outliers
-from ._scheduler import open_runner
+from ._scheduler import check_scheduler, open_runner
 
 __all__ = ["DetectConfig", "DetectResult", "detect", "default_overlap", "default_tile", "VERSION"]
 
@@ -230,7 +232,16 @@ def _plan(reference, distorted, output, config):
     camera = ops.Camera.for_shape(shape, focal=config.focal)
     params = config.registration.resolved(camera)
     halo = config.overlap if config.overlap is not None else default_overlap(params, camera, shape)
-    grid = tiles.TileGrid(shape, config.tile or default_tile(shape), halo)
+    tile = config.tile or default_tile(shape)
+    side = max(max(shape), 32)  # one tile of this side holds the image; a halo this wide reaches across it
+    if tile > side:
+        log.warning("note: tile size %d px is larger than the image (%d x %d): one tile of %d px", tile, *shape,
+                    side)
+        tile = side
+    if halo > side:
+        log.warning("note: overlap %d px reaches beyond the image (%d x %d): using %d px", halo, *shape, side)
+        halo = side
+    grid = tiles.TileGrid(shape, tile, halo)
     # what runs, 'auto' resolved: the same run keys the same whichever way it was asked for
     config = dataclasses.replace(config, registration=params, tile=grid.tile, overlap=grid.halo)
     return _Plan(ref_info, dist_info, Path(output), config, camera, params, grid, _block_grid(grid),
@@ -405,6 +416,12 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
     t_start = time.perf_counter()
     config = config or DetectConfig()
     plan = _plan(reference, distorted, output, config)
+    if resume:
+        done = _finished(output, plan)
+        if done is not None:
+            return done
+    check_scheduler(scheduler)
+    _check_outputs(output, geotiff, overwrite)
     group = tiles.create_result_store(output, _specs(plan.grid, len(plan.params.axes)), {"run_key": plan.key},
                                       overwrite=overwrite, resume=resume)
     store = str(tiles.partial_path(output))
@@ -441,10 +458,57 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
         raise
 
 
+GEOTIFFS = ("change_mask.tif", "change_mask_reference.tif", "change_score.tif")
+
+
+def _check_outputs(output, geotiff, overwrite):
+    """Refuse outputs that cannot be written or that exist without
+    ``overwrite``, before any work starts."""
+    tiles.repair_interrupted_overwrite(output)
+    if os.path.lexists(output) and not overwrite:
+        raise InputError(f"{output}: output exists; pass --overwrite to replace it")
+    tiles.check_writable(output)
+    if geotiff is None:
+        return
+    directory = Path(geotiff)
+    if os.path.lexists(directory) and not directory.is_dir():
+        raise InputError(f"{directory}: --geotiff must be a directory, this is a file")
+    for name in GEOTIFFS:
+        if os.path.lexists(directory / name) and not overwrite:
+            raise InputError(f"{directory / name}: exists; pass --overwrite to replace it")
+    tiles.check_writable(directory / GEOTIFFS[0])
+
+
+def _finished(output, plan):
+    """The result of a finished store at ``output`` made by the same run (a
+    ``--resume`` of it is complete already), else None; a finished store of
+    another run is refused."""
+    if not tiles.is_complete_store(output):
+        return None
+    attrs = tiles.open_result_store(output).attrs.asdict()
+    if attrs.get("run_key") != plan.key:
+        raise InputError(f"{output}: finished by a run with other inputs or parameters; pass --overwrite "
+                         f"instead of --resume to replace it")
+    log.info("%s: already complete", output)
+    return DetectResult(**attrs["summary"])
+
+
 def _write_geotiffs(store, directory, ref_info, dist_info):
+    """The masks and the score as GeoTIFFs, each written aside and renamed
+    into place."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     group = tiles.open_result_store(store)
-    tiles.write_geotiff(directory / "change_mask.tif", group["change_mask"], dist_info.geo)
-    tiles.write_geotiff(directory / "change_mask_reference.tif", group["change_mask_reference"], ref_info.geo)
-    tiles.write_geotiff(directory / "change_score.tif", group["change_score"], dist_info.geo)
+    sources = {"change_mask.tif": ("change_mask", dist_info.geo),
+               "change_mask_reference.tif": ("change_mask_reference", ref_info.geo),
+               "change_score.tif": ("change_score", dist_info.geo)}
+    for name in GEOTIFFS:
+        array, geo = sources[name]
+        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tif", dir=directory)
+        os.close(fd)
+        try:
+            tiles.write_geotiff(tmp, group[array], geo)
+            os.replace(tmp, directory / name)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)

@@ -17,9 +17,9 @@ import time
 import dask
 import dask.callbacks
 
-from rsmb.ops import ParameterError
+from rsmb.ops import InputError, ParameterError
 
-__all__ = ["SCHEDULERS", "Runner", "open_runner"]
+__all__ = ["SCHEDULERS", "Runner", "check_scheduler", "open_runner"]
 
 SCHEDULERS = ("threads", "processes", "synchronous")
 log = logging.getLogger("rsmb")
@@ -125,6 +125,22 @@ class _DaskProgress(dask.callbacks.Callback):
         self.progress.step()
 
 
+def check_scheduler(scheduler):
+    """Raise :class:`ops.ParameterError` unless ``scheduler`` names a local
+    scheduler, a ``tcp://host:port`` address or an existing scheduler file."""
+    if scheduler in SCHEDULERS:
+        return
+    if isinstance(scheduler, str) and scheduler.startswith("tcp://"):
+        host, _, port = scheduler[len("tcp://"):].rpartition(":")
+        if host and port.isdigit():
+            return
+        raise ParameterError(f"scheduler: expected tcp://HOST:PORT, got {scheduler!r}")
+    if isinstance(scheduler, str) and os.path.isfile(scheduler):
+        return
+    raise ParameterError(f"scheduler: expected one of {', '.join(SCHEDULERS)}, a tcp:// address or a scheduler "
+                         f"file, got {scheduler!r}")
+
+
 @contextlib.contextmanager
 def open_runner(scheduler="threads", *, workers=None):
     """A :class:`Runner` for ``scheduler`` (see the module docstring).
@@ -133,17 +149,20 @@ def open_runner(scheduler="threads", *, workers=None):
     ------
     ParameterError
         For an unknown scheduler name or a scheduler file that does not exist.
+    InputError
+        When the dask.distributed scheduler cannot be reached.
     """
+    check_scheduler(scheduler)
     if scheduler in SCHEDULERS:
         yield Runner(scheduler, workers=workers)
         return
-    if scheduler.startswith("tcp://") or os.path.isfile(scheduler):
-        from distributed import Client
+    from distributed import Client
 
-        kw = {"address": scheduler} if scheduler.startswith("tcp://") else {"scheduler_file": scheduler}
-        with Client(timeout="30s", **kw) as client:
-            client.run(worker_setup)
-            yield Runner("distributed", client=client)
-        return
-    raise ParameterError(f"scheduler: expected one of {SCHEDULERS}, a tcp:// address or a scheduler file, "
-                         f"got {scheduler!r}")
+    kw = {"address": scheduler} if scheduler.startswith("tcp://") else {"scheduler_file": scheduler}
+    try:
+        client = Client(timeout="30s", **kw)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise InputError(f"scheduler: cannot connect to {scheduler} ({' '.join(str(exc).split())})") from None
+    with client:
+        client.run(worker_setup)
+        yield Runner("distributed", client=client)

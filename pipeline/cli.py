@@ -9,6 +9,7 @@ import logging
 import sys
 
 import click
+import numpy as np
 
 from rsmb import ops
 from rsmb.ops import RSMBError
@@ -18,8 +19,9 @@ __all__ = ["main", "cli"]
 log = logging.getLogger("rsmb")
 
 
-def _floats(text, name, count=None, allow_auto=False):
-    """Comma-separated numbers (``auto`` -> None when allowed), one per axis or one for all."""
+def _floats(text, name, count=None, allow_auto=False, minimum=None, positive=False):
+    """Comma-separated numbers (``auto`` -> None when allowed), one per axis or
+    one for all; each at least ``minimum`` (above 0 with ``positive``)."""
     values = []
     for token in text.split(","):
         token = token.strip()
@@ -27,12 +29,52 @@ def _floats(text, name, count=None, allow_auto=False):
             values.append(None)
             continue
         try:
-            values.append(float(token))
+            value = float(token)
         except ValueError:
             raise click.BadParameter(f"expected comma-separated numbers, got {text!r}", param_hint=name) from None
+        if not np.isfinite(value) or (positive and value <= 0) or (minimum is not None and value < minimum):
+            bound = "> 0" if positive else f">= {minimum:g}"
+            raise click.BadParameter(f"expected numbers {bound}, got {token}", param_hint=name)
+        values.append(value)
     if count is not None and len(values) not in (1, count):
         raise click.BadParameter(f"expected 1 or {count} values (one per axis), got {len(values)}", param_hint=name)
     return tuple(values) if count is None or len(values) == count else tuple(values) * count
+
+
+def _check_threshold(ctx, param, value):
+    try:
+        ops.ChangeParams(threshold=value)
+    except ops.ParameterError:
+        raise click.BadParameter(f"expected 'noise', 'kapur' or a number > 0, got {value!r}") from None
+    return value
+
+
+def _check_scheduler(ctx, param, value):
+    from ._scheduler import check_scheduler
+
+    if value is not None:
+        try:
+            check_scheduler(value)
+        except ops.ParameterError as exc:
+            raise click.BadParameter(str(exc).split(": ", 1)[-1]) from None
+    return value
+
+
+def tile_option(help_text):
+    return click.option("--tile-size", type=click.IntRange(min=32), default=None, help=help_text)
+
+
+def runtime_options(func):
+    """Where and how a run executes (defined once for detect, demo and run)."""
+    options = [
+        click.option("--scheduler", default="threads", show_default=True, callback=_check_scheduler,
+                     help="threads, processes, synchronous, a tcp:// address or a scheduler file."),
+        click.option("--workers", type=click.IntRange(min=1), default=None,
+                     help="Workers of a local scheduler (default: one per core)."),
+    ]
+    for option in reversed(options):
+        func = option(func)
+    return func
 
 
 _SEARCH = {"tx": 20.0, "ty": 20.0, "s": 0.0, "rx": 0.0, "ry": 0.0, "rz": 3.0}
@@ -58,16 +100,16 @@ def registration_options(func):
         click.option("--solver", type=click.Choice(["fast", "exact"]), default="fast", show_default=True,
                      help="Row solver: the fast active-set solver or the exact cvxpy (CLARABEL) oracle "
                           "(seconds per row; small images only)."),
-        click.option("--lambda-w", type=float, default=1e-3, show_default=True,
+        click.option("--lambda-w", type=click.FloatRange(min=0), default=1e-3, show_default=True,
                      help="Weight of ||w||_1 in eq. 13 (intensities in [0, 1])."),
-        click.option("--lambda-chi", type=float, default=0.02, show_default=True,
+        click.option("--lambda-chi", type=click.FloatRange(min=0, min_open=True), default=0.02, show_default=True,
                      help="Weight of ||chi||_1 in eq. 13; residuals above half of it count as change."),
-        click.option("--threshold", default="noise", show_default=True,
+        click.option("--threshold", default="noise", show_default=True, callback=_check_threshold,
                      help="Change threshold: 'noise' (k robust sigmas of the residual), 'kapur' (the paper's "
                           "entropy threshold) or a number (score units, intensities in [0, 1])."),
-        click.option("--min-area", type=int, default=20, show_default=True,
+        click.option("--min-area", type=click.IntRange(min=0), default=20, show_default=True,
                      help="Smallest change kept, pixels."),
-        click.option("--focal", type=float, default=None,
+        click.option("--focal", type=click.FloatRange(min=0, min_open=True), default=None,
                      help="Focal length in pixels of the whole image. Default 1.2 x the larger side."),
     ]
     for option in reversed(options):
@@ -82,13 +124,14 @@ def build_config(axes, half_width, step, search, shutter, solver, lambda_w, lamb
 
     axes = tuple(a.strip() for a in axes.split(",") if a.strip())
     unknown = [a for a in axes if a not in ops.POSE_AXES]
-    if unknown:
-        raise click.BadParameter(f"unknown axes {unknown}; expected names from {ops.POSE_AXES}", param_hint="--axes")
+    if unknown or not axes or len(set(axes)) != len(axes):
+        raise click.BadParameter(f"expected distinct names from {','.join(ops.POSE_AXES)}, got {','.join(axes) or 'none'}",
+                                 param_hint="--axes")
     reg = ops.RegistrationParams(
         axes=axes,
-        half_width=_floats(half_width, "--half-width", len(axes), allow_auto=True),
-        step=_floats(step, "--step", len(axes), allow_auto=True),
-        search=_floats(search, "--search", len(axes)) if search else tuple(_SEARCH[a] for a in axes),
+        half_width=_floats(half_width, "--half-width", len(axes), allow_auto=True, minimum=0),
+        step=_floats(step, "--step", len(axes), allow_auto=True, positive=True),
+        search=_floats(search, "--search", len(axes), minimum=0) if search else tuple(_SEARCH[a] for a in axes),
         shutter=shutter, solver=solver, lambda_w=lambda_w, lambda_chi=lambda_chi)
     changes = ops.ChangeParams(threshold=threshold, min_area=min_area)
     return DetectConfig(registration=reg, changes=changes, tile=tile, overlap=overlap, focal=focal)
@@ -102,6 +145,7 @@ def cli(verbose, quiet):
     """Registration and change detection under rolling shutter and motion blur."""
     level = logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
+    log.setLevel(level)  # basicConfig configures once per process; the level holds per invocation
     logging.getLogger("distributed").setLevel(max(level, logging.WARNING))
     _quiet_library_warnings()
 
@@ -122,17 +166,15 @@ def _quiet_library_warnings():
 @click.argument("distorted", type=click.Path(dir_okay=True))
 @click.option("-o", "--output", required=True, type=click.Path(), help="Output zarr store.")
 @registration_options
-@click.option("--tile-size", type=int, default=None,
-              help="Core tile side, pixels [default: 1024 if the image holds 4 x 4 such tiles, else 512].")
-@click.option("--overlap", type=int, default=None,
+@tile_option("Core tile side, pixels (at least 32) [default: 1024 if the image holds 4 x 4 such tiles, else 512].")
+@click.option("--overlap", type=click.IntRange(min=0), default=None,
               help="Tile halo, pixels. Default: the largest displacement the search range allows.")
-@click.option("--scheduler", default="threads", show_default=True,
-              help="threads, processes, synchronous, a tcp:// address or a scheduler file.")
-@click.option("--workers", type=int, default=None, help="Workers of a local scheduler (default: one per core).")
-@click.option("--resume", is_flag=True, help="Continue an interrupted run: only missing tiles run.")
-@click.option("--overwrite", is_flag=True, help="Replace an existing output store.")
+@runtime_options
+@click.option("--resume", is_flag=True,
+              help="Continue an interrupted run: only missing tiles run (a finished run is left as it is).")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output store (and --geotiff files).")
 @click.option("--geotiff", type=click.Path(file_okay=False), default=None,
-              help="Also write the masks as GeoTIFFs into this directory.")
+              help="Also write the masks as GeoTIFFs into this directory (existing files need --overwrite).")
 @click.option("--json", "as_json", is_flag=True, help="Print the run summary as JSON.")
 def detect(reference, distorted, output, axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi,
            threshold, min_area, focal, tile_size, overlap, scheduler, workers, resume, overwrite, geotiff, as_json):
@@ -214,8 +256,8 @@ def evaluate(store, truth_dir, as_json):
               help="Directory of real images (aerial/, rolling_shutter/); missing parts are skipped.")
 @click.option("--quick", is_flag=True, help="Small sizes: a smoke run in about a minute.")
 @click.option("--sizes", default=None, help="Image sides of the scale section, e.g. 2048,4096,8192.")
-@click.option("--workers", type=int, default=None, help="Local worker threads (default: one per core).")
-@click.option("--tile-size", type=int, default=None,
+@click.option("--workers", type=click.IntRange(min=1), default=None, help="Local worker threads (default: one per core).")
+@click.option("--tile-size", type=click.IntRange(min=32), default=None,
               help="Tile side of the scale section [default: detect's default and 512 px, side by side].")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None, help="Also write results here.")
 def bench(sections, data, quick, sizes, workers, tile_size, json_path):
@@ -236,9 +278,11 @@ def bench(sections, data, quick, sizes, workers, tile_size, json_path):
 @cli.command()
 @click.option("-o", "--output", "out_dir", default="rsmb-demo", show_default=True, type=click.Path(file_okay=False),
               help="Directory for the demo's inputs, store, GeoTIFFs and report.")
-@click.option("--size", type=int, default=2048, show_default=True, help="Side of the demo scene, pixels.")
-@click.option("--tile-size", type=int, default=None, help="Core tile side [default: detect's].")
-@click.option("--scheduler", default="threads", show_default=True)
+@click.option("--size", type=click.IntRange(min=256), default=2048, show_default=True,
+              help="Side of the demo scene, pixels.")
+@tile_option("Core tile side [default: detect's].")
+@click.option("--scheduler", default="threads", show_default=True, callback=_check_scheduler,
+              help="threads, processes, synchronous, a tcp:// address or a scheduler file.")
 @click.option("--overwrite", is_flag=True, help="Replace a previous demo in the directory.")
 def demo(out_dir, size, tile_size, scheduler, overwrite):
     """The main job on an embedded default: synthesise, detect, evaluate, report."""
@@ -271,7 +315,7 @@ def report(store, out_dir, max_pixels, overwrite):
 
 @cli.command("run")
 @click.argument("workflow", type=click.Path(dir_okay=False))
-@click.option("--scheduler", default=None, help="Override the workflow's scheduler.")
+@click.option("--scheduler", default=None, callback=_check_scheduler, help="Override the workflow's scheduler.")
 def run_command(workflow, scheduler):
     """Run a nightly WORKFLOW file (YAML): synth, detect, evaluate and report steps."""
     from ._workflow import run_workflow
@@ -280,25 +324,30 @@ def run_command(workflow, scheduler):
         click.echo(f"step {step['step']} {step['kind']}: {step['seconds']:.1f} s")
 
 
+def _one_line(text):
+    return " ".join(str(text).split())
+
+
 def main(argv=None):
-    """Entry point: runs the CLI and maps errors to exit codes."""
+    """Entry point: runs the CLI and maps errors to exit codes (0 success, 2 bad
+    input or option, 1 anything else), each error as one line on stderr."""
     try:
         cli.main(args=argv, prog_name="rsmb", standalone_mode=False)
     except click.exceptions.Exit as exc:
         return exc.exit_code
-    except click.ClickException as exc:
-        exc.show()
-        return exc.exit_code
-    except click.exceptions.Abort:
-        click.echo("aborted", err=True)
+    except click.ClickException as exc:  # bad options and arguments: click's own three lines made one
+        click.echo(f"rsmb: error: {_one_line(exc.format_message())}", err=True)
+        return 2 if isinstance(exc, click.UsageError) else exc.exit_code
+    except (click.exceptions.Abort, KeyboardInterrupt):
+        click.echo("rsmb: interrupted", err=True)
         return 1
     except RSMBError as exc:
-        click.echo(f"rsmb: error: {exc}", err=True)
+        click.echo(f"rsmb: error: {_one_line(exc)}", err=True)
         return 2
     except Exception as exc:  # noqa: BLE001 - the CLI's last resort
         log.debug("unexpected error", exc_info=True)
-        click.echo(f"rsmb: unexpected error: {type(exc).__name__}: {exc} (rerun with -vv for the traceback)",
-                   err=True)
+        click.echo(f"rsmb: unexpected error: {type(exc).__name__}: {_one_line(exc)} (rerun with -vv for the "
+                   f"traceback)", err=True)
         return 1
     return 0
 

@@ -18,11 +18,14 @@ from ._stitch import TileLabels, merge_tile_labels
 from ._store import (
     ArraySpec,
     abort_result_store,
+    check_writable,
     create_result_store,
     finalize_result_store,
+    is_complete_store,
     jsonable,
     open_result_store,
     partial_path,
+    repair_interrupted_overwrite,
     write_array,
 )
 
@@ -45,11 +48,14 @@ __all__ = [
     "TileLabels",
     "merge_tile_labels",
     "ArraySpec",
+    "check_writable",
     "create_result_store",
     "write_array",
     "finalize_result_store",
+    "is_complete_store",
     "abort_result_store",
     "open_result_store",
     "partial_path",
+    "repair_interrupted_overwrite",
     "jsonable",
 ]

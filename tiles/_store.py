@@ -20,8 +20,8 @@ import dataclasses
 import datetime as _dt
 import math
 import os
-import secrets
 import shutil
+import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path, PurePath
@@ -34,6 +34,9 @@ from rsmb.ops._errors import InputError, ParameterError
 __all__ = [
     "ArraySpec",
     "abort_result_store",
+    "check_writable",
+    "is_complete_store",
+    "repair_interrupted_overwrite",
     "create_result_store",
     "finalize_result_store",
     "jsonable",
@@ -43,7 +46,10 @@ __all__ = [
 ]
 
 _PARTIAL = ".partial"
+_REPLACED = ".replaced"
 _ZARR_MARKERS = ("zarr.json", ".zgroup", ".zarray")
+#: Root attribute :func:`finalize_result_store` sets: the store is whole.
+COMPLETE_ATTR = "complete"
 
 
 # image arrays of the output store (see ArraySpec.compressed)
@@ -170,6 +176,77 @@ def _check_replaceable(path: Path, *, overwrite: bool) -> None:
         )
 
 
+def check_writable(path: str | os.PathLike) -> None:
+    """Raise :class:`InputError` unless ``path`` can be created: its nearest
+    existing ancestor must be a directory in which a file can be written (tried,
+    so that read-only file systems, permissions and quotas all count).
+
+    Raises
+    ------
+    InputError
+        One line naming ``path`` and the reason.
+    """
+    target = Path(os.path.abspath(path))
+    parent = target.parent
+    while not os.path.lexists(parent):
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"{path}: cannot be created: {parent} is a file, not a directory")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".rsmb-write-test-", dir=parent)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot write in {parent} ({exc.strerror or exc})") from None
+
+
+def _replaced_path(final: Path) -> Path:
+    return final.with_name(f"{final.name}{_REPLACED}")
+
+
+def is_complete_store(path: str | os.PathLike) -> bool:
+    """True for a store :func:`finalize_result_store` finished (its root
+    attribute ``complete`` says so)."""
+    import json
+
+    try:
+        meta = json.loads((Path(path) / "zarr.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return bool(meta.get("attributes", {}).get(COMPLETE_ATTR))
+
+
+def repair_interrupted_overwrite(path: str | os.PathLike) -> str | None:
+    """Finish or undo an overwrite that was killed between its two renames.
+
+    :func:`finalize_result_store` moves an old store to ``<path>.replaced``,
+    renames the new one from ``<path>.partial`` to ``<path>``, then deletes the
+    old one.  Killed after the first rename, ``<path>`` is missing: the new
+    store is put in place when it is complete, otherwise the old one is put
+    back.  Killed before the deletion, the old store is deleted.
+
+    Returns
+    -------
+    str or None
+        What was done ("completed", "restored", "cleaned"), None if nothing was
+        interrupted.
+    """
+    final = Path(path)
+    old = _replaced_path(final)
+    if not os.path.lexists(old):
+        return None
+    if os.path.lexists(final):
+        shutil.rmtree(old, ignore_errors=True)
+        return "cleaned"
+    tmp = partial_path(final)
+    if is_complete_store(tmp):
+        os.replace(tmp, final)
+        shutil.rmtree(old, ignore_errors=True)
+        return "completed"
+    os.replace(old, final)
+    return "restored"
+
+
 def _group_path(group_or_path: Any) -> Path:
     """Local directory of a zarr group (or a path given as is)."""
     if isinstance(group_or_path, (str, os.PathLike)):
@@ -238,11 +315,13 @@ def create_result_store(
     import zarr
 
     final = Path(path)
+    repair_interrupted_overwrite(final)
     _check_replaceable(final, overwrite=overwrite)
+    check_writable(final)
     root_attrs = jsonable(attrs)
     tmp = partial_path(final)
     if _is_zarr_store(tmp):
-        if resume:
+        if resume and not is_complete_store(tmp):
             return zarr.open_group(store=str(tmp), mode="r+")
         abort_result_store(tmp)
     group = zarr.create_group(store=str(tmp), zarr_format=3, attributes=root_attrs)
@@ -327,8 +406,10 @@ def finalize_result_store(
     """Consolidate the partial store's metadata and rename it to its final path.
 
     The rename is atomic (one ``os.replace`` on the same file system).  When
-    ``overwrite`` is True an existing store is first moved aside and deleted only
-    after the new store is in place.
+    ``overwrite`` is True an existing store is first moved to
+    ``<final>.replaced`` and deleted only after the new store is in place; a
+    run killed between the two renames is repaired by the next one (see
+    :func:`repair_interrupted_overwrite`).
 
     Parameters
     ----------
@@ -350,24 +431,26 @@ def finalize_result_store(
     InputError
         If ``final_path`` exists and ``overwrite`` is False, or is not a zarr store.
     """
+    import zarr
+
     tmp = _group_path(tmp_group_or_path)
     final = Path(final_path)
     if not _is_zarr_store(tmp):
         raise InputError(f"{tmp}: no partial store to finalize")
     _check_replaceable(final, overwrite=overwrite)
+    zarr.open_group(store=str(tmp), mode="r+").attrs[COMPLETE_ATTR] = True
     _consolidate(tmp)
-    old = None
+    old = _replaced_path(final)
     if os.path.lexists(final):
-        old = final.with_name(f"{final.name}.old-{secrets.token_hex(4)}")
+        shutil.rmtree(old, ignore_errors=True)
         os.replace(final, old)
     try:
         os.replace(tmp, final)
     except BaseException:
-        if old is not None:
+        if os.path.lexists(old) and not os.path.lexists(final):
             os.replace(old, final)
         raise
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+    shutil.rmtree(old, ignore_errors=True)
     return final
 
 
@@ -404,6 +487,9 @@ def open_result_store(path: str | os.PathLike):
 
     store = Path(path)
     if not store.exists():
+        if os.path.lexists(_replaced_path(store)):
+            raise InputError(f"{store}: an overwrite of this store was interrupted; run detect on it again "
+                             f"to repair it")
         raise InputError(f"{store}: no such output store")
     try:
         node = zarr.open(store=str(store), mode="r")

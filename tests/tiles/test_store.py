@@ -75,7 +75,7 @@ def test_create_write_finalize(out, arrays):
     np.testing.assert_array_equal(store["trajectory"][...], arrays["trajectory"])
     np.testing.assert_array_equal(store["gain"][...], np.ones((2, 3), np.float32))
     assert dict(store.attrs) == {
-        "params": {"tile": [TILE, TILE]}, "input": "ref.tif", "n": 3,
+        "params": {"tile": [TILE, TILE]}, "input": "ref.tif", "n": 3, "complete": True,
     }
     with pytest.raises(ValueError, match="read-only"):
         store["gain"][0, 0] = 2.0
@@ -173,3 +173,34 @@ def test_jsonable():
     json.dumps(out, allow_nan=False)
     with pytest.raises(ParameterError, match="attrs.x"):
         jsonable({"x": object()})
+
+
+def test_repair_of_an_interrupted_overwrite(out, arrays):
+    import os
+
+    import zarr
+
+    from rsmb.tiles import is_complete_store, partial_path, repair_interrupted_overwrite
+
+    replaced = out.with_name(out.name + ".replaced")
+    assert repair_interrupted_overwrite(out) is None
+    # killed after the old store moved aside, the new one unfinished: the old one comes back
+    _write_store(out, arrays, attrs={"run": 1})
+    os.replace(out, replaced)
+    zarr.create_group(store=str(partial_path(out)), zarr_format=3)
+    assert not is_complete_store(partial_path(out))
+    assert repair_interrupted_overwrite(out) == "restored"
+    assert open_result_store(out).attrs["run"] == 1 and not replaced.exists()
+    abort_result_store(partial_path(out))
+    # killed after the old store moved aside, the new one finished: the new one goes in place
+    os.replace(out, replaced)
+    _write_store(out.with_name("new.zarr"), arrays, attrs={"run": 2})
+    os.replace(out.with_name("new.zarr"), partial_path(out))
+    assert repair_interrupted_overwrite(out) == "completed"
+    assert open_result_store(out).attrs["run"] == 2 and not replaced.exists()
+    # killed before the old store was deleted
+    replaced.mkdir()
+    assert repair_interrupted_overwrite(out) == "cleaned" and not replaced.exists()
+    with pytest.raises(InputError, match="interrupted"):
+        os.replace(out, replaced)
+        open_result_store(out)
