@@ -316,12 +316,27 @@ def report(store, out_dir, max_pixels, overwrite):
 @cli.command("run")
 @click.argument("workflow", type=click.Path(dir_okay=False))
 @click.option("--scheduler", default=None, callback=_check_scheduler, help="Override the workflow's scheduler.")
-def run_command(workflow, scheduler):
-    """Run a nightly WORKFLOW file (YAML): synth, detect, evaluate and report steps."""
-    from ._workflow import run_workflow
+@click.option("--check", is_flag=True, help="Validate the workflow and its inputs, list the steps, run nothing.")
+@click.pass_context
+def run_command(ctx, workflow, scheduler, check):
+    """Run a nightly WORKFLOW file (YAML): synth, detect, evaluate and report steps.
 
-    for step in run_workflow(workflow, scheduler=scheduler):
-        click.echo(f"step {step['step']} {step['kind']}: {step['seconds']:.1f} s")
+    Exit code 3 when a step failed (the summary says which and why)."""
+    from ._workflow import check_inputs, load_workflow, run_workflow
+
+    if check:
+        flow = load_workflow(workflow)
+        check_inputs(flow)
+        for number, (kind, _) in enumerate(flow.steps, 1):
+            click.echo(f"step {number} {kind}")
+        click.echo(f"{flow.path}: valid, {len(flow.steps)} steps; summary would go to {flow.summary}")
+        return
+    results = run_workflow(workflow, scheduler=scheduler)
+    for step in results:
+        why = f": {step['reason']}" if step["status"] == "failed" else ""
+        click.echo(f"step {step['step']} {step['kind']}: {step['status']} ({step['seconds']:.1f} s){why}")
+    if any(step["status"] == "failed" for step in results):
+        ctx.exit(3)
 
 
 def _one_line(text):
@@ -332,7 +347,7 @@ def main(argv=None):
     """Entry point: runs the CLI and maps errors to exit codes (0 success, 2 bad
     input or option, 1 anything else), each error as one line on stderr."""
     try:
-        cli.main(args=argv, prog_name="rsmb", standalone_mode=False)
+        code = cli.main(args=argv, prog_name="rsmb", standalone_mode=False)
     except click.exceptions.Exit as exc:
         return exc.exit_code
     except click.ClickException as exc:  # bad options and arguments: click's own three lines made one
@@ -349,7 +364,7 @@ def main(argv=None):
         click.echo(f"rsmb: unexpected error: {type(exc).__name__}: {_one_line(exc)} (rerun with -vv for the "
                    f"traceback)", err=True)
         return 1
-    return 0
+    return code if isinstance(code, int) else 0  # a command's ctx.exit(n) comes back as n
 
 
 if __name__ == "__main__":
