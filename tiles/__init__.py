@@ -3,17 +3,17 @@ stores and the seam merge of per-tile labels."""
 
 from ._grid import Tile, TileGrid
 from ._ingest import WindowStats, check_stats, ingest_core, read_padded
+from ._geo import GeoInfo
 from ._io import (
-    GeoInfo,
     ImageInfo,
     Raster,
-    as_float01,
     check_same_shape,
     probe_image,
     read_image,
     read_window,
     write_geotiff,
 )
+from ._luminance import as_float01
 from ._stitch import TileLabels, merge_tile_labels
 from ._store import (
     ArraySpec,

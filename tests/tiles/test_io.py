@@ -1,4 +1,5 @@
-"""Tests of tiles._io: every input format, the error cases, windows, GeoTIFF output."""
+"""Tests of tiles._io and the modules behind it (_sources, _luminance, _geo): every
+input format, the error cases, windows, GeoTIFF output."""
 
 import warnings
 
@@ -11,7 +12,7 @@ from rasterio.crs import CRS
 from rasterio.transform import Affine
 
 from rsmb.ops._errors import InputError, RSMBError
-from rsmb.tiles._io import (
+from rsmb.tiles import (
     GeoInfo,
     as_float01,
     check_same_shape,
@@ -327,3 +328,36 @@ def test_check_same_shape(tmp_path, gray_u8):
     message = str(exc_info.value)
     assert "a.npy" in message and "b.npy" in message
     assert str((H, W)) in message and str((H - 1, W)) in message and "\n" not in message
+
+
+# ---------------------------------------------------------------- dispatch
+
+
+def test_each_format_is_one_reader(tmp_path, geotiff, gray_u8):
+    from rsmb.tiles import _sources
+
+    np.save(tmp_path / "a.npy", gray_u8)
+    zarr.create_array(str(tmp_path / "s.zarr"), data=gray_u8)
+    kinds = {p: type(_sources.open_source(str(p))).__name__
+             for p in (geotiff, tmp_path / "a.npy", tmp_path / "s.zarr")}
+    assert list(kinds.values()) == ["RasterioSource", "NumpySource", "ZarrSource"]
+
+
+def test_a_new_format_is_one_class(tmp_path, gray_u8, monkeypatch):
+    from rsmb.tiles import _sources
+
+    class CsvSource(_sources._ArraySource):
+        extensions = (".csv",)
+
+        def _load(self):
+            return np.loadtxt(self.path, delimiter=",", dtype=np.uint8)
+
+    path = tmp_path / "gray.csv"
+    np.savetxt(path, gray_u8, delimiter=",", fmt="%d")
+    with pytest.raises(InputError, match="unsupported format '.csv'"):
+        probe_image(path)
+    monkeypatch.setattr(_sources, "_FORMATS", _sources._FORMATS + (CsvSource,))
+    assert probe_image(path).shape == gray_u8.shape
+    np.testing.assert_allclose(read_image(path).data, gray_u8 / 255.0, atol=1e-6)
+    data, _ = read_window(path, slice(2, 5), slice(None))
+    np.testing.assert_allclose(data, gray_u8[2:5] / 255.0, atol=1e-6)
