@@ -22,17 +22,13 @@ import warnings
 
 import numpy as np
 
-from rsmb.ops._errors import InputError, ParameterError
+from rsmb.ops._errors import InputError, ParameterError, one_line
 
+from ._gdal import gdal_errors
 from ._geo import GeoInfo
 from ._luminance import array_to_luminance, bands_to_luminance, default_alpha_index
 
 _HASH_BLOCK = 1 << 20
-
-
-def one_line(text: object) -> str:
-    """``text`` with every run of whitespace (newlines included) made one space."""
-    return " ".join(str(text).split())
 
 
 def resolve_slice(index: slice | None, size: int, label: str) -> tuple[int, int]:
@@ -127,14 +123,11 @@ class RasterioSource(_Source):
 
     def _open(self):
         import rasterio
-        from rasterio.errors import NotGeoreferencedWarning, RasterioError
+        from rasterio.errors import NotGeoreferencedWarning
 
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", NotGeoreferencedWarning)
-                return rasterio.open(self.path)
-        except (RasterioError, OSError) as exc:
-            raise InputError(f"{self.path}: cannot read image ({one_line(exc)})") from exc
+        with gdal_errors(self.path), warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            return rasterio.open(self.path)
 
     def probe(self) -> tuple[tuple[int, int], GeoInfo]:
         with self._open() as ds:
@@ -143,7 +136,6 @@ class RasterioSource(_Source):
     def read(
         self, rows: slice | None = None, cols: slice | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
-        from rasterio.errors import RasterioError
         from rasterio.windows import Window
 
         with self._open() as ds:
@@ -152,10 +144,8 @@ class RasterioSource(_Source):
                 r0, r1 = resolve_slice(rows, ds.height, "rows")
                 c0, c1 = resolve_slice(cols, ds.width, "cols")
                 window = Window(c0, r0, c1 - c0, r1 - r0)
-            try:
+            with gdal_errors(self.path):
                 stack = ds.read(window=window)  # (bands, h, w)
-            except (RasterioError, OSError) as exc:
-                raise InputError(f"{self.path}: cannot read image ({one_line(exc)})") from exc
             if window is None and 0 in stack.shape[1:]:
                 raise InputError(f"{self.path}: is empty (shape {stack.shape[1:]})")
             return bands_to_luminance(

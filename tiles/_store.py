@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from rsmb.ops._errors import InputError, ParameterError
+from rsmb.ops._errors import InputError, ParameterError, one_line
 
 __all__ = [
     "ArraySpec",
@@ -409,7 +409,7 @@ def open_result_store(path: str | os.PathLike):
         node = zarr.open(store=str(store), mode="r")
     except Exception as exc:  # noqa: BLE001 - zarr raises many types for bad stores
         raise InputError(
-            f"{store}: not a readable zarr store ({' '.join(str(exc).split())})"
+            f"{store}: not a readable zarr store ({one_line(exc)})"
         ) from exc
     if not isinstance(node, zarr.Group):
         raise InputError(f"{store}: is a zarr array, expected a zarr group")

@@ -1,6 +1,7 @@
 """Tests of tiles._io and the modules behind it (_sources, _luminance, _geo): every
 input format, the error cases, windows, GeoTIFF output."""
 
+import logging
 import warnings
 
 import numpy as np
@@ -293,6 +294,60 @@ def test_input_errors_name_file_and_problem(tmp_path, make, problem):
     with pytest.raises(InputError, match=problem) as exc_info:
         read_image(path)
     _assert_one_line(exc_info, path)
+
+
+def _truncated(path, keep):
+    """A tiled 3-band GeoTIFF cut to ``keep`` of its bytes (header kept or not)."""
+    rng = np.random.default_rng(5)
+    with rasterio.open(path, "w", driver="GTiff", height=600, width=700, count=3, dtype="uint8",
+                       crs="EPSG:32618", transform=TRANSFORM, tiled=True, compress="deflate") as ds:
+        ds.write(rng.integers(0, 256, size=(3, 600, 700), dtype=np.uint8))
+    with open(path, "r+b") as fh:
+        fh.truncate(keep(path.stat().st_size))
+    return path
+
+
+@pytest.mark.parametrize("read", [read_image, lambda p: read_window(p, slice(400, 600), slice(None))])
+def test_truncated_geotiff_error_names_gdal_cause(tmp_path, read):
+    path = _truncated(tmp_path / "cut.tif", lambda size: size // 2)
+    assert probe_image(path).shape == (600, 700)  # the header is intact
+    with pytest.raises(InputError, match="cannot read image") as exc_info:
+        read(path)
+    _assert_one_line(exc_info, path)
+    message = str(exc_info.value)
+    assert "See previous exception" not in message
+    assert "TIFF" in message  # GDAL's (libtiff's) own description of the failure
+
+
+def test_truncated_header_error_names_gdal_cause(tmp_path):
+    path = _truncated(tmp_path / "head.tif", lambda size: 100)
+    for call in (probe_image, read_image):
+        with pytest.raises(InputError, match="cannot read image") as exc_info:
+            call(path)
+        _assert_one_line(exc_info, path)
+        assert "TIFF" in str(exc_info.value)
+
+
+def test_gdal_info_lines_do_not_leak_but_stay_at_debug(tmp_path, caplog):
+    path = _truncated(tmp_path / "cut.tif", lambda size: size // 2)
+
+    def gdal_records():
+        return [r for r in caplog.records if r.name.startswith("rasterio._e")]
+
+    caplog.set_level(logging.INFO)
+    with pytest.raises(InputError):
+        read_image(path)
+    assert gdal_records() == []
+    with rasterio.open(path) as ds, pytest.raises(rasterio.errors.RasterioIOError):
+        ds.read()  # rasterio used directly, outside rsmb: its records untouched
+    assert gdal_records() and {r.levelno for r in gdal_records()} == {logging.INFO}
+
+    caplog.clear()
+    caplog.set_level(logging.DEBUG)
+    with pytest.raises(InputError):
+        read_image(path)
+    assert any("GDAL signalled an error" in r.getMessage() for r in gdal_records())
+    assert {r.levelno for r in gdal_records()} == {logging.DEBUG}
 
 
 def test_no_valid_pixel(tmp_path):
