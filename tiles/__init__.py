@@ -13,6 +13,7 @@ from ._io import (
     read_window,
     write_geotiff,
 )
+from ._json import jsonable
 from ._luminance import as_float01
 from ._stitch import TileLabels, merge_tile_labels
 from ._store import (
@@ -20,10 +21,10 @@ from ._store import (
     abort_result_store,
     create_result_store,
     finalize_result_store,
-    jsonable,
     open_result_store,
     partial_path,
     write_array,
+    write_spatial_coords,
 )
 
 __all__ = [
@@ -47,6 +48,7 @@ __all__ = [
     "ArraySpec",
     "create_result_store",
     "write_array",
+    "write_spatial_coords",
     "finalize_result_store",
     "abort_result_store",
     "open_result_store",
