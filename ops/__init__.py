@@ -32,7 +32,7 @@ from ._register import Registration, RegistrationParams, auto_step, register
 from ._rowsolve import solve_row_fast
 from ._scene import aerial_scene, paste_changes
 from ._synth import MOTIONS, SyntheticPair, motion_path, synthesize_pair
-from ._threshold import clean_mask, hysteresis_mask, kapur_threshold, kapur_threshold_histogram
+from ._threshold import kapur_threshold, kapur_threshold_histogram
 
 __all__ = [
     "AXIS_UNITS",
@@ -73,8 +73,6 @@ __all__ = [
     "changes_to_reference",
     "kapur_threshold",
     "kapur_threshold_histogram",
-    "clean_mask",
-    "hysteresis_mask",
     "ConfusionCounts",
     "confusion",
     "trajectory_rmse",
