@@ -33,7 +33,7 @@ from ._register import Registration, register
 from ._rowsolve import solve_row_fast
 from ._scene import aerial_scene, paste_changes
 from ._synth import MOTIONS, SyntheticPair, motion_path, synthesize_pair
-from ._threshold import clean_mask, hysteresis_mask, kapur_threshold, kapur_threshold_histogram
+from ._threshold import kapur_threshold, kapur_threshold_histogram
 
 #: Version of the kernels' results: raised whenever a change to ops alters what
 #: a run computes, so that ``--resume`` never mixes tiles of two versions.
@@ -79,8 +79,6 @@ __all__ = [
     "changes_to_reference",
     "kapur_threshold",
     "kapur_threshold_histogram",
-    "clean_mask",
-    "hysteresis_mask",
     "ConfusionCounts",
     "confusion",
     "trajectory_rmse",

@@ -26,3 +26,9 @@ class ParameterError(RSMBError, ValueError):
 class SolverError(RSMBError, RuntimeError):
     """A numerical solver did not reach an optimal solution (the message gives
     the solver and its status)."""
+
+
+def one_line(text: object) -> str:
+    """``text`` (an exception, say) with every run of whitespace, newlines
+    included, made one space: the form of a cause quoted in a one-line message."""
+    return " ".join(str(text).split())

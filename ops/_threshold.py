@@ -1,10 +1,11 @@
-"""Turning a change score (e.g. ``|chi|``, METHOD.md section 3 step 4) into a clean mask.
+"""Kapur's threshold of a change score (e.g. ``|chi|``, METHOD.md section 3 step 4).
 
 - :func:`kapur_threshold`: Kapur, Sahoo & Wong (1985) maximum-entropy histogram threshold,
   the threshold the paper applies to ``|chi|``; :func:`kapur_threshold_histogram`
   does the same from a ready histogram (e.g. one summed over tiles).
-- :func:`clean_mask`: drop connected components (and fill holes) below a minimum area.
-- :func:`hysteresis_mask`: two-level threshold keeping weak pixels connected to strong ones.
+
+The mask clean-up that follows the threshold (components, minimum area, holes)
+is :mod:`._changes`.
 """
 
 from __future__ import annotations
@@ -12,12 +13,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from skimage.filters import apply_hysteresis_threshold
-from skimage.morphology import remove_small_holes, remove_small_objects
 
-from rsmb.ops._errors import InputError, ParameterError
+from rsmb.ops._errors import ParameterError
 
-__all__ = ["kapur_threshold", "kapur_threshold_histogram", "clean_mask", "hysteresis_mask"]
+__all__ = ["kapur_threshold", "kapur_threshold_histogram"]
 
 
 def _xlogx(p: np.ndarray) -> np.ndarray:
@@ -177,98 +176,3 @@ def kapur_threshold_histogram(hist, edges) -> float:
         return math.inf
     first, last = _plateau_centre(total)
     return float(0.5 * (e[first + 1] + e[last + 1]))
-
-
-def _check_min_area(min_area) -> int:
-    if isinstance(min_area, bool) or not isinstance(min_area, (int, np.integer, float)):
-        raise ParameterError(f"min_area: expected a non-negative number of pixels, got {min_area!r}")
-    if not (min_area >= 0 and math.isfinite(min_area)):
-        raise ParameterError(f"min_area: expected a non-negative number of pixels, got {min_area!r}")
-    return int(math.ceil(min_area))
-
-
-def clean_mask(
-    mask, *, min_area: int, connectivity: int = 2, fill_holes: bool = True
-) -> np.ndarray:
-    """Remove connected components smaller than ``min_area`` pixels (and small holes).
-
-    Parameters
-    ----------
-    mask : ndarray of bool or {0, 1}, shape (H, W)
-        Raw change mask (e.g. ``|chi| > kapur_threshold(|chi|)``).
-    min_area : int
-        Minimum area in pixels: components with fewer pixels are removed, and (with
-        ``fill_holes``) background holes with fewer pixels are filled. ``0`` or ``1``
-        changes nothing.
-    connectivity : {1, 2}, optional
-        Neighbourhood of a component: 1 = 4-connected, 2 = 8-connected (default).
-        Holes use the complementary connectivity (8-connected objects have
-        4-connected holes and vice versa), as digital topology requires.
-    fill_holes : bool, optional
-        Also fill holes smaller than ``min_area`` inside the kept components.
-        Default True.
-
-    Returns
-    -------
-    ndarray of bool, shape (H, W)
-        Cleaned mask (a new array; ``mask`` is not modified).
-
-    Raises
-    ------
-    ParameterError
-        For a negative ``min_area``, a ``connectivity`` other than 1 or 2, or a mask
-        that is not 2-D.
-    InputError
-        If ``mask`` holds values other than 0/1.
-    """
-    m = np.asarray(mask)
-    if m.ndim != 2:
-        raise ParameterError(f"mask: expected a 2-D array (H, W), got shape {m.shape}")
-    if m.dtype != bool:
-        if not np.issubdtype(m.dtype, np.number) or np.any((m != 0) & (m != 1)):
-            raise InputError("mask: expected a boolean or 0/1 array")
-        m = m != 0
-    area = _check_min_area(min_area)
-    if connectivity not in (1, 2) or isinstance(connectivity, bool):
-        raise ParameterError(f"connectivity: expected 1 or 2, got {connectivity!r}")
-    out = m.copy()
-    if area <= 1:
-        return out
-    # skimage >= 0.26: ``max_size`` removes components of <= max_size pixels
-    # (the deprecated ``min_size`` removed those of < min_size pixels).
-    out = remove_small_objects(out, max_size=area - 1, connectivity=connectivity)
-    if fill_holes:
-        out = remove_small_holes(out, max_size=area - 1, connectivity=3 - connectivity)
-    return out
-
-
-def hysteresis_mask(score, *, low: float, high: float) -> np.ndarray:
-    """Hysteresis threshold: pixels above ``low`` connected to a pixel above ``high``.
-
-    Parameters
-    ----------
-    score : ndarray, shape (H, W)
-        Change score, e.g. ``|chi|`` in image intensity units. NaN counts as below
-        both thresholds.
-    low, high : float
-        Thresholds in the units of ``score``, ``low <= high``. A pixel is kept if
-        ``score > low`` and its 4-connected component of such pixels (scikit-image's
-        labelling) contains a pixel with ``score > high``.
-
-    Returns
-    -------
-    ndarray of bool, shape (H, W)
-
-    Raises
-    ------
-    ParameterError
-        If ``low > high``, a threshold is NaN, or ``score`` is not 2-D.
-    """
-    s = np.asarray(score)
-    if s.ndim != 2:
-        raise ParameterError(f"score: expected a 2-D array (H, W), got shape {s.shape}")
-    low_f, high_f = float(low), float(high)
-    if math.isnan(low_f) or math.isnan(high_f) or low_f > high_f:
-        raise ParameterError(f"low, high: expected low <= high, got low={low!r}, high={high!r}")
-    s = np.nan_to_num(s.astype(np.float64, copy=False), nan=-np.inf)
-    return apply_hysteresis_threshold(s, low_f, high_f)

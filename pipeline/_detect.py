@@ -369,6 +369,7 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff):
     place, GeoTIFFs on request."""
     axes = plan.params.axes
     group.attrs.update(_attributes(plan, result, scheduler))
+    tiles.write_spatial_coords(group, plan.distorted.geo, plan.shape)
     group["trajectory"].attrs.update({"pose_axes": list(axes), "units": [ops.AXIS_UNITS[a] for a in axes]})
     for name in ("work", "ingest"):
         del group[name]

@@ -2,9 +2,16 @@
 
 ``--scheduler`` takes ``threads`` (default), ``processes``, ``synchronous``, a
 ``tcp://`` address of a dask.distributed scheduler, or the path of a scheduler
-file.  Local schedulers need no server.  Each worker thread runs one OpenCV
-thread (set in every task) so that tiles, not OpenCV, use the cores; see
-:func:`worker_setup`.
+file.  Local schedulers need no server.  Tiles, not OpenCV, use the cores:
+OpenCV runs one thread per task.
+
+Process-wide settings (:func:`configure_process`: OpenCV's thread count, glibc's
+mmap threshold) are made only in processes that exist to run rsmb: worker
+processes (``processes`` scheduler, dask.distributed workers), where each task
+makes them once, and the ``rsmb`` command itself.  A program that imports rsmb
+as a library keeps its settings: while :meth:`Runner.map` runs tasks in the
+calling process (``threads``, ``synchronous``), OpenCV's thread count is set to
+one and restored when the run ends, and malloc is left alone.
 """
 
 import contextlib
@@ -12,6 +19,7 @@ import ctypes
 import logging
 import os
 import sys
+import threading
 import time
 
 import dask
@@ -19,7 +27,7 @@ import dask.callbacks
 
 from rsmb.ops import InputError, ParameterError
 
-__all__ = ["SCHEDULERS", "Runner", "check_scheduler", "open_runner"]
+__all__ = ["SCHEDULERS", "Runner", "check_scheduler", "configure_process", "open_runner"]
 
 SCHEDULERS = ("threads", "processes", "synchronous")
 log = logging.getLogger("rsmb")
@@ -27,14 +35,22 @@ log = logging.getLogger("rsmb")
 
 _MMAP_THRESHOLD = 4 << 20
 _process_ready = False
+_opencv_lock = threading.Lock()
+_opencv_runs = 0  # runs of Runner.map under way in this process
+_opencv_saved = None  # OpenCV's thread count before the first of them
 
 
-def worker_setup():
-    """Called at the start of every task: one OpenCV thread per worker thread,
-    and (once per process, glibc only) arrays of 4 MiB and more served by mmap.
-    glibc otherwise raises its mmap threshold as large blocks are freed and keeps
-    freed tile buffers in the heap, so the resident size crept up with the number
-    of tiles (8192^2: 606 MB peak, 418 MB with this; 2048^2: 448 and 381 MB)."""
+def configure_process():
+    """Process-wide settings for a process that runs rsmb and nothing else.
+
+    One OpenCV thread (tiles, not OpenCV, use the cores), and on glibc arrays of
+    4 MiB and more served by mmap: glibc otherwise raises its mmap threshold as
+    large blocks are freed and keeps freed tile buffers in the heap, so the
+    resident size grows with the number of tiles.  Called by every task in a
+    worker process and meant for the ``rsmb`` command's entry point; never call
+    it in a program that uses rsmb as a library (the malloc setting cannot be
+    undone).  Idempotent.
+    """
     global _process_ready
     import cv2
 
@@ -47,6 +63,27 @@ def worker_setup():
             ctypes.CDLL("libc.so.6").mallopt(-3, _MMAP_THRESHOLD)  # -3: M_MMAP_THRESHOLD
         except (OSError, AttributeError):  # not glibc
             pass
+
+
+@contextlib.contextmanager
+def _one_opencv_thread():
+    """One OpenCV thread in this process while tasks may run in it; the thread
+    count it had is restored when the last of the runs under way ends."""
+    global _opencv_runs, _opencv_saved
+    import cv2
+
+    with _opencv_lock:
+        if _opencv_runs == 0:
+            _opencv_saved = cv2.getNumThreads()
+            cv2.setNumThreads(1)
+        _opencv_runs += 1
+    try:
+        yield
+    finally:
+        with _opencv_lock:
+            _opencv_runs -= 1
+            if _opencv_runs == 0:
+                cv2.setNumThreads(_opencv_saved)
 
 
 class _Progress:
@@ -92,27 +129,38 @@ class Runner:
         argument_lists = list(argument_lists)
         if not argument_lists:
             return []
-        n = len(argument_lists)
-        self.tasks_run += n
-        progress = _Progress(label, n)
-        if self.client is not None:
-            from distributed import as_completed
+        self.tasks_run += len(argument_lists)
+        progress = _Progress(label, len(argument_lists))
+        with _one_opencv_thread():
+            if self.client is not None:
+                return self._map_distributed(progress, func, argument_lists)
+            return self._map_local(progress, label, func, argument_lists)
 
-            futures = [self.client.submit(_call, func, args, pure=False, priority=n - i)
-                       for i, args in enumerate(argument_lists)]
-            for _ in as_completed(futures):
-                progress.step()
-            return self.client.gather(futures)
+    def _map_distributed(self, progress, func, argument_lists):
+        from distributed import as_completed
+
+        n, owner = len(argument_lists), os.getpid()
+        futures = [self.client.submit(_call, func, args, owner, pure=False, priority=n - i)
+                   for i, args in enumerate(argument_lists)]
+        for _ in as_completed(futures):
+            progress.step()
+        return self.client.gather(futures)
+
+    def _map_local(self, progress, label, func, argument_lists):
         # dask's local schedulers start independent tasks in descending key order
-        tasks = [dask.delayed(_call, pure=False)(func, args, dask_key_name=f"{label}-{n - i:08d}")
+        n, owner = len(argument_lists), os.getpid()
+        tasks = [dask.delayed(_call, pure=False)(func, args, owner, dask_key_name=f"{label}-{n - i:08d}")
                  for i, args in enumerate(argument_lists)]
         with _DaskProgress(progress):
             kw = {"num_workers": self.workers} if self.workers and self.scheduler != "synchronous" else {}
             return list(dask.compute(*tasks, scheduler=self.scheduler, **kw))
 
 
-def _call(func, args):
-    worker_setup()
+def _call(func, args, owner_pid):
+    """Run one task; in a process other than the one that called Runner.map
+    (a worker process), make the process-wide settings first."""
+    if os.getpid() != owner_pid:
+        configure_process()
     return func(*args)
 
 
@@ -164,5 +212,4 @@ def open_runner(scheduler="threads", *, workers=None):
     except (OSError, TimeoutError, ValueError) as exc:
         raise InputError(f"scheduler: cannot connect to {scheduler} ({' '.join(str(exc).split())})") from None
     with client:
-        client.run(worker_setup)
         yield Runner("distributed", client=client)

@@ -346,6 +346,9 @@ def _one_line(text):
 def main(argv=None):
     """Entry point: runs the CLI and maps errors to exit codes (0 success, 2 bad
     input or option, 1 anything else), each error as one line on stderr."""
+    from ._scheduler import configure_process
+
+    configure_process()  # the rsmb command is its own process: its settings are rsmb's
     try:
         code = cli.main(args=argv, prog_name="rsmb", standalone_mode=False)
     except click.exceptions.Exit as exc:

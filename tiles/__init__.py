@@ -3,17 +3,18 @@ stores and the seam merge of per-tile labels."""
 
 from ._grid import Tile, TileGrid
 from ._ingest import WindowStats, check_stats, ingest_core, read_padded
+from ._geo import GeoInfo
 from ._io import (
-    GeoInfo,
     ImageInfo,
     Raster,
-    as_float01,
     check_same_shape,
     probe_image,
     read_image,
     read_window,
     write_geotiff,
 )
+from ._json import jsonable
+from ._luminance import as_float01
 from ._stitch import TileLabels, merge_tile_labels
 from ._store import (
     ArraySpec,
@@ -22,11 +23,11 @@ from ._store import (
     create_result_store,
     finalize_result_store,
     is_complete_store,
-    jsonable,
     open_result_store,
     partial_path,
     repair_interrupted_overwrite,
     write_array,
+    write_spatial_coords,
 )
 
 __all__ = [
@@ -51,6 +52,7 @@ __all__ = [
     "check_writable",
     "create_result_store",
     "write_array",
+    "write_spatial_coords",
     "finalize_result_store",
     "is_complete_store",
     "abort_result_store",

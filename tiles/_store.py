@@ -10,26 +10,28 @@ run never leaves a half-written store at ``<path>``.  Every array carries
 
 opens it with dims such as ``change_mask (y, x)``, ``trajectory (row, axis)`` and
 ``gain (tile_y, tile_x)`` and without warnings; no extra argument is needed.
+A georeferenced store also has ``x`` / ``y`` coordinates and a CF ``spatial_ref``
+(:func:`write_spatial_coords`), which rioxarray reads.
 (A store that was not finalized has no consolidated metadata: open it with
 ``xr.open_zarr(path, consolidated=False)``.)
 """
 
 from __future__ import annotations
 
-import dataclasses
-import datetime as _dt
-import math
 import os
 import shutil
 import tempfile
 import warnings
 from dataclasses import dataclass
-from pathlib import Path, PurePath
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from rsmb.ops._errors import InputError, ParameterError
+from rsmb.ops._errors import InputError, ParameterError, one_line
+
+from ._geo import cf_grid_mapping, cf_xy_attrs, is_rotation_free, pixel_centres
+from ._json import jsonable
 
 __all__ = [
     "ArraySpec",
@@ -39,10 +41,10 @@ __all__ = [
     "repair_interrupted_overwrite",
     "create_result_store",
     "finalize_result_store",
-    "jsonable",
     "open_result_store",
     "partial_path",
     "write_array",
+    "write_spatial_coords",
 ]
 
 _PARTIAL = ".partial"
@@ -103,58 +105,6 @@ class ArraySpec:
         object.__setattr__(self, "chunks", chunks)
         object.__setattr__(self, "dims", dims)
         object.__setattr__(self, "dtype", np.dtype(self.dtype).name)
-
-
-# ---------------------------------------------------------------------------- JSON
-
-
-def jsonable(obj: Any) -> Any:
-    """Convert ``obj`` recursively to plain JSON types (strict JSON, no NaN).
-
-    NumPy scalars become Python numbers, arrays and tuples become lists, paths
-    become strings, dataclasses dicts, dates ISO 8601 strings, NumPy dtypes their
-    name, sets sorted lists, dict keys strings.  Non-finite floats become the strings
-    ``"NaN"``, ``"Infinity"`` and ``"-Infinity"`` (zarr v3's spelling).
-
-    Raises
-    ------
-    ParameterError
-        For an object with no JSON form; the message gives its location.
-    """
-    return _jsonable(obj, "attrs")
-
-
-def _jsonable(obj: Any, where: str) -> Any:
-    if obj is None or isinstance(obj, (bool, str)):
-        return obj
-    if isinstance(obj, np.generic):
-        return _jsonable(obj.item(), where)
-    if isinstance(obj, int):
-        return int(obj)
-    if isinstance(obj, float):
-        if math.isfinite(obj):
-            return float(obj)
-        return "NaN" if math.isnan(obj) else ("Infinity" if obj > 0 else "-Infinity")
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist(), where)
-    if isinstance(obj, PurePath):
-        return str(obj)
-    if isinstance(obj, np.dtype):
-        return obj.name
-    if isinstance(obj, (_dt.datetime, _dt.date, _dt.time)):
-        return obj.isoformat()
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        fields = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
-        return _jsonable(fields, where)
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v, f"{where}.{k}") for k, v in obj.items()}
-    if isinstance(obj, (set, frozenset)):
-        return sorted((_jsonable(v, where) for v in obj), key=repr)
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v, f"{where}[{i}]") for i, v in enumerate(obj)]
-    raise ParameterError(
-        f"{where}: expected a JSON-serialisable value, got {type(obj).__name__}"
-    )
 
 
 # ------------------------------------------------------------------------- helpers
@@ -471,6 +421,60 @@ def abort_result_store(tmp_group_or_path) -> None:
     shutil.rmtree(tmp, ignore_errors=True)
 
 
+def write_spatial_coords(group, geo, shape: tuple[int, int]) -> list[str]:
+    """Write the CF coordinates of a georeferenced store, as rioxarray reads them.
+
+    For a rotation-free transform, 1-D float64 arrays ``x`` (W,) and ``y`` (H,)
+    of the pixel centres (:func:`pixel_centres`) with ``dimension_names`` ("x",)
+    and ("y",) and CF attributes (:func:`cf_xy_attrs`); a rotated or sheared
+    transform gets no x/y arrays (1-D coordinates cannot describe it) but keeps
+    its ``GeoTransform``.  With a CRS, a scalar int64 array ``spatial_ref`` (value
+    0) holding the CF grid mapping (:func:`cf_grid_mapping`), named in the
+    ``grid_mapping`` and ``coordinates`` attributes of every array whose
+    dimensions are ("y", "x") (``coordinates`` is how xarray keeps a scalar
+    coordinate).  Then ``xr.open_zarr(store)`` has x/y coordinates and
+    ``.rio.crs`` / ``.rio.transform()`` of rioxarray give the input's CRS and
+    transform.  Call it before :func:`finalize_result_store` consolidates the
+    metadata; existing ``x``, ``y``, ``spatial_ref`` arrays are replaced.
+
+    Parameters
+    ----------
+    group : zarr.Group
+        A writable store, e.g. from :func:`create_result_store`.
+    geo : GeoInfo
+        The georeferencing of the (y, x) arrays; nothing is written without a
+        transform.
+    shape : tuple of int
+        (H, W) of the (y, x) arrays, pixels.
+
+    Returns
+    -------
+    list of str
+        Names of the arrays written.
+    """
+    if geo.transform is None:
+        return []
+    written = []
+    if is_rotation_free(geo.transform):
+        x, y = pixel_centres(geo.transform, shape)
+        for name, values, attrs in zip(("x", "y"), (x, y), cf_xy_attrs(geo.crs)):
+            array = group.create_array(name, shape=values.shape, dtype="float64", chunks=values.shape,
+                                       dimension_names=(name,), fill_value=float("nan"), overwrite=True)
+            array[:] = values
+            array.attrs.update(attrs)
+            written.append(name)
+    if geo.crs is not None:
+        ref = group.create_array("spatial_ref", shape=(), dtype="int64", dimension_names=(),
+                                 fill_value=0, overwrite=True)
+        ref[...] = 0
+        ref.attrs.update(jsonable(cf_grid_mapping(geo)))
+        written.append("spatial_ref")
+        for _, array in group.arrays():
+            if tuple(array.metadata.dimension_names or ()) == ("y", "x"):
+                array.attrs.update({"grid_mapping": "spatial_ref", "coordinates": "spatial_ref"})
+    return written
+
+
 def open_result_store(path: str | os.PathLike):
     """Open a finished output store read-only.
 
@@ -495,7 +499,7 @@ def open_result_store(path: str | os.PathLike):
         node = zarr.open(store=str(store), mode="r")
     except Exception as exc:  # noqa: BLE001 - zarr raises many types for bad stores
         raise InputError(
-            f"{store}: not a readable zarr store ({' '.join(str(exc).split())})"
+            f"{store}: not a readable zarr store ({one_line(exc)})"
         ) from exc
     if not isinstance(node, zarr.Group):
         raise InputError(f"{store}: is a zarr array, expected a zarr group")

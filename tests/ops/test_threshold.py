@@ -1,14 +1,11 @@
 import math
-import warnings
 
 import numpy as np
 import pytest
 
-from rsmb.ops._errors import InputError, ParameterError
+from rsmb.ops._errors import ParameterError
 from rsmb.ops._threshold import (
     _kapur_entropy,
-    clean_mask,
-    hysteresis_mask,
     kapur_threshold,
     kapur_threshold_histogram,
 )
@@ -103,67 +100,3 @@ def test_kapur_parameter_errors():
         kapur_threshold_histogram(np.ones(4), np.linspace(0, 1, 4))
     with pytest.raises(ParameterError, match="hist"):
         kapur_threshold_histogram(np.array([1.0, -1.0]), np.linspace(0, 1, 3))
-
-
-def _blobs():
-    m = np.zeros((40, 40), bool)
-    m[2:4, 2:4] = True  # 4 px: removed at min_area 5
-    m[10:20, 10:20] = True  # 100 px, with a 4 px hole
-    m[14:16, 14:16] = False
-    m[30:33, 30:32] = True  # 6 px
-    m[25, 25] = m[26, 26] = True  # diagonal pair: one 2 px object at 8-connectivity
-    return m
-
-
-def test_clean_mask_removes_small_components_and_fills_small_holes():
-    m = _blobs()
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # no skimage deprecation warning
-        out = clean_mask(m, min_area=5)
-    assert out.dtype == bool and out.shape == m.shape
-    assert not out[2:4, 2:4].any()
-    assert out[10:20, 10:20].all()  # hole of 4 px filled
-    assert out[30:33, 30:32].all()  # 6 px kept
-    assert not out[25, 25] and not out[26, 26]
-    assert m[14, 14] == False  # input untouched  # noqa: E712
-
-
-def test_clean_mask_area_boundary_and_options():
-    m = _blobs()
-    keep6 = clean_mask(m, min_area=6, fill_holes=False)
-    assert keep6[30:33, 30:32].all()  # exactly min_area: kept
-    assert not keep6[14:16, 14:16].any()  # hole not filled
-    assert not clean_mask(m, min_area=7)[30:33, 30:32].any()
-    # 4-connectivity: the diagonal pair is two 1-px objects
-    m2 = np.zeros((10, 10), bool)
-    m2[3, 3] = m2[4, 4] = True
-    assert clean_mask(m2, min_area=2, connectivity=2).sum() == 2
-    assert clean_mask(m2, min_area=2, connectivity=1).sum() == 0
-    assert np.array_equal(clean_mask(m, min_area=1), m)
-    assert np.array_equal(clean_mask(m, min_area=0, fill_holes=True), m)
-
-
-def test_clean_mask_errors():
-    with pytest.raises(ParameterError, match="min_area"):
-        clean_mask(np.zeros((4, 4), bool), min_area=-1)
-    with pytest.raises(ParameterError, match="connectivity"):
-        clean_mask(np.zeros((4, 4), bool), min_area=3, connectivity=3)
-    with pytest.raises(InputError, match="mask"):
-        clean_mask(np.full((4, 4), 2), min_area=3)
-    with pytest.raises(ParameterError, match="mask"):
-        clean_mask(np.zeros(4, bool), min_area=3)
-
-
-def test_hysteresis_keeps_weak_pixels_connected_to_strong():
-    score = np.zeros((20, 20))
-    score[5:10, 5:10] = 0.3  # weak blob ...
-    score[7, 7] = 0.9  # ... with a strong core: kept whole
-    score[15:18, 15:18] = 0.3  # weak blob alone: dropped
-    score[0, 19] = np.nan
-    out = hysteresis_mask(score, low=0.2, high=0.5)
-    assert out.dtype == bool
-    assert out[5:10, 5:10].all()
-    assert not out[15:18, 15:18].any()
-    assert out.sum() == 25
-    with pytest.raises(ParameterError, match="low"):
-        hysteresis_mask(score, low=0.6, high=0.5)

@@ -1,7 +1,11 @@
-"""The task runner: results in order, tasks started in the order given."""
+"""The task runner: results in order, tasks started in the order given, and
+process-wide settings only in worker processes."""
+
+import os
 
 import pytest
 
+from rsmb.pipeline import _scheduler
 from rsmb.pipeline._scheduler import Runner
 
 
@@ -25,3 +29,34 @@ def test_results_in_order_with_two_threads():
     runner = Runner("threads", workers=2)
     assert runner.map("two", task, [(i,) for i in range(50)]) == [-i for i in range(50)]
     assert runner.tasks_run == 50
+
+
+def _opencv_threads(_):
+    import cv2
+
+    return os.getpid(), cv2.getNumThreads()
+
+
+@pytest.mark.parametrize("scheduler, workers", [("threads", 2), ("synchronous", None)])
+def test_a_run_in_the_calling_process_leaves_it_as_it_was(scheduler, workers, monkeypatch):
+    cv2 = pytest.importorskip("cv2")
+    before = cv2.getNumThreads()
+    configured = []
+    monkeypatch.setattr(_scheduler, "configure_process", lambda: configured.append(os.getpid()))
+    cv2.setNumThreads(3)
+    try:
+        out = Runner(scheduler, workers=workers).map("cv", _opencv_threads, [(i,) for i in range(6)])
+        assert {pid for pid, _ in out} == {os.getpid()}
+        assert {n for _, n in out} == {1}  # one OpenCV thread while the tasks ran
+        assert cv2.getNumThreads() == 3  # the caller's setting is back
+        assert configured == []  # no process-wide setting in a library caller
+    finally:
+        cv2.setNumThreads(before)
+
+
+def test_worker_processes_get_the_process_settings():
+    cv2 = pytest.importorskip("cv2")
+    before = cv2.getNumThreads()
+    out = Runner("processes", workers=1).map("cv", _opencv_threads, [(0,), (1,)])
+    assert all(pid != os.getpid() and n == 1 for pid, n in out)
+    assert cv2.getNumThreads() == before

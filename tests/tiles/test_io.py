@@ -1,5 +1,7 @@
-"""Tests of tiles._io: every input format, the error cases, windows, GeoTIFF output."""
+"""Tests of tiles._io and the modules behind it (_sources, _luminance, _geo): every
+input format, the error cases, windows, GeoTIFF output."""
 
+import logging
 import warnings
 
 import numpy as np
@@ -11,7 +13,7 @@ from rasterio.crs import CRS
 from rasterio.transform import Affine
 
 from rsmb.ops._errors import InputError, RSMBError
-from rsmb.tiles._io import (
+from rsmb.tiles import (
     GeoInfo,
     as_float01,
     check_same_shape,
@@ -294,6 +296,60 @@ def test_input_errors_name_file_and_problem(tmp_path, make, problem):
     _assert_one_line(exc_info, path)
 
 
+def _truncated(path, keep):
+    """A tiled 3-band GeoTIFF cut to ``keep`` of its bytes (header kept or not)."""
+    rng = np.random.default_rng(5)
+    with rasterio.open(path, "w", driver="GTiff", height=600, width=700, count=3, dtype="uint8",
+                       crs="EPSG:32618", transform=TRANSFORM, tiled=True, compress="deflate") as ds:
+        ds.write(rng.integers(0, 256, size=(3, 600, 700), dtype=np.uint8))
+    with open(path, "r+b") as fh:
+        fh.truncate(keep(path.stat().st_size))
+    return path
+
+
+@pytest.mark.parametrize("read", [read_image, lambda p: read_window(p, slice(400, 600), slice(None))])
+def test_truncated_geotiff_error_names_gdal_cause(tmp_path, read):
+    path = _truncated(tmp_path / "cut.tif", lambda size: size // 2)
+    assert probe_image(path).shape == (600, 700)  # the header is intact
+    with pytest.raises(InputError, match="cannot read image") as exc_info:
+        read(path)
+    _assert_one_line(exc_info, path)
+    message = str(exc_info.value)
+    assert "See previous exception" not in message
+    assert "TIFF" in message  # GDAL's (libtiff's) own description of the failure
+
+
+def test_truncated_header_error_names_gdal_cause(tmp_path):
+    path = _truncated(tmp_path / "head.tif", lambda size: 100)
+    for call in (probe_image, read_image):
+        with pytest.raises(InputError, match="cannot read image") as exc_info:
+            call(path)
+        _assert_one_line(exc_info, path)
+        assert "TIFF" in str(exc_info.value)
+
+
+def test_gdal_info_lines_do_not_leak_but_stay_at_debug(tmp_path, caplog):
+    path = _truncated(tmp_path / "cut.tif", lambda size: size // 2)
+
+    def gdal_records():
+        return [r for r in caplog.records if r.name.startswith("rasterio._e")]
+
+    caplog.set_level(logging.INFO)
+    with pytest.raises(InputError):
+        read_image(path)
+    assert gdal_records() == []
+    with rasterio.open(path) as ds, pytest.raises(rasterio.errors.RasterioIOError):
+        ds.read()  # rasterio used directly, outside rsmb: its records untouched
+    assert gdal_records() and {r.levelno for r in gdal_records()} == {logging.INFO}
+
+    caplog.clear()
+    caplog.set_level(logging.DEBUG)
+    with pytest.raises(InputError):
+        read_image(path)
+    assert any("GDAL signalled an error" in r.getMessage() for r in gdal_records())
+    assert {r.levelno for r in gdal_records()} == {logging.DEBUG}
+
+
 def test_no_valid_pixel(tmp_path):
     path = tmp_path / "allnodata.tif"
     with rasterio.open(path, "w", driver="GTiff", height=4, width=5, count=1,
@@ -327,3 +383,36 @@ def test_check_same_shape(tmp_path, gray_u8):
     message = str(exc_info.value)
     assert "a.npy" in message and "b.npy" in message
     assert str((H, W)) in message and str((H - 1, W)) in message and "\n" not in message
+
+
+# ---------------------------------------------------------------- dispatch
+
+
+def test_each_format_is_one_reader(tmp_path, geotiff, gray_u8):
+    from rsmb.tiles import _sources
+
+    np.save(tmp_path / "a.npy", gray_u8)
+    zarr.create_array(str(tmp_path / "s.zarr"), data=gray_u8)
+    kinds = {p: type(_sources.open_source(str(p))).__name__
+             for p in (geotiff, tmp_path / "a.npy", tmp_path / "s.zarr")}
+    assert list(kinds.values()) == ["RasterioSource", "NumpySource", "ZarrSource"]
+
+
+def test_a_new_format_is_one_class(tmp_path, gray_u8, monkeypatch):
+    from rsmb.tiles import _sources
+
+    class CsvSource(_sources._ArraySource):
+        extensions = (".csv",)
+
+        def _load(self):
+            return np.loadtxt(self.path, delimiter=",", dtype=np.uint8)
+
+    path = tmp_path / "gray.csv"
+    np.savetxt(path, gray_u8, delimiter=",", fmt="%d")
+    with pytest.raises(InputError, match="unsupported format '.csv'"):
+        probe_image(path)
+    monkeypatch.setattr(_sources, "_FORMATS", _sources._FORMATS + (CsvSource,))
+    assert probe_image(path).shape == gray_u8.shape
+    np.testing.assert_allclose(read_image(path).data, gray_u8 / 255.0, atol=1e-6)
+    data, _ = read_window(path, slice(2, 5), slice(None))
+    np.testing.assert_allclose(data, gray_u8[2:5] / 255.0, atol=1e-6)

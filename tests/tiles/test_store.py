@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xarray as xr
+from rasterio.crs import CRS
+from rasterio.transform import Affine
 
 from rsmb.ops._errors import InputError, ParameterError
 from rsmb.tiles._store import (
@@ -16,10 +18,11 @@ from rsmb.tiles._store import (
     abort_result_store,
     create_result_store,
     finalize_result_store,
-    jsonable,
     open_result_store,
     write_array,
+    write_spatial_coords,
 )
+from rsmb.tiles import jsonable
 
 H, W, D = 30, 44, 6
 TILE = 16
@@ -204,3 +207,69 @@ def test_repair_of_an_interrupted_overwrite(out, arrays):
     with pytest.raises(InputError, match="interrupted"):
         os.replace(out, replaced)
         open_result_store(out)
+
+
+# ---------------------------------------------------------------- CF coordinates
+
+# a north-up UTM grid whose origin is not on a round number
+UTM = Affine(0.5, 0.0, 583000.25, 0.0, -0.5, 4507000.75)
+
+
+def _geo(epsg, transform):
+    from rsmb.tiles import GeoInfo
+
+    return GeoInfo(crs=CRS.from_epsg(epsg).to_wkt(version="WKT2_2019"), transform=tuple(transform)[:6])
+
+
+def _georeferenced_store(out, arrays, geo):
+    group = create_result_store(out, _specs(), {"run": 1}, overwrite=False)
+    write_array(group, "change_mask", arrays["change_mask"])
+    written = write_spatial_coords(group, geo, (H, W))
+    finalize_result_store(group, out, overwrite=False)
+    return written
+
+
+def test_spatial_coords_read_by_xarray_and_rioxarray(out, arrays):
+    pytest.importorskip("rioxarray")
+    assert _georeferenced_store(out, arrays, _geo(32618, UTM)) == ["x", "y", "spatial_ref"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ds = xr.open_zarr(out, consolidated=True)  # the coordinates are in the consolidated metadata
+    cols, rows = np.arange(W) + 0.5, np.arange(H) + 0.5
+    np.testing.assert_allclose(ds.x.values, [(UTM @ (c, 0.5))[0] for c in cols], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(ds.y.values, [(UTM @ (0.5, r))[1] for r in rows], rtol=0, atol=1e-9)
+    assert ds.x.dtype == np.float64 and ds.x.dims == ("x",) and ds.y.dims == ("y",)
+    assert ds.x.attrs["standard_name"] == "projection_x_coordinate" and ds.y.attrs["units"] == "metre"
+    mask = ds.change_mask
+    assert mask.rio.crs.to_epsg() == 32618
+    assert mask.rio.transform().almost_equals(UTM)
+    assert ds.rio.crs.to_epsg() == 32618
+    ref = ds.spatial_ref
+    assert ref.shape == () and int(ref) == 0
+    assert ref.attrs["grid_mapping_name"] == "transverse_mercator"
+    assert CRS.from_wkt(ref.attrs["crs_wkt"]).to_epsg() == 32618
+    assert [float(v) for v in ref.attrs["GeoTransform"].split()] == list(UTM.to_gdal())
+    assert "spatial_ref" not in ds.trajectory.dims and "grid_mapping" not in ds.trajectory.attrs
+    np.testing.assert_array_equal(mask.values, arrays["change_mask"])
+
+
+def test_spatial_coords_geographic_rotated_and_none(tmp_path, arrays):
+    pytest.importorskip("rioxarray")
+    lonlat = Affine(1e-4, 0.0, -75.5, 0.0, -1e-4, 40.25)
+    _georeferenced_store(tmp_path / "ll.zarr", arrays, _geo(4326, lonlat))
+    ds = xr.open_zarr(tmp_path / "ll.zarr")
+    assert ds.x.attrs["units"] == "degrees_east" and ds.y.attrs["standard_name"] == "latitude"
+    assert ds.change_mask.rio.crs.to_epsg() == 4326
+
+    rotated = Affine.rotation(10.0) @ Affine.scale(0.5, -0.5)
+    rotated = Affine.translation(583000.0, 4507000.0) @ rotated
+    assert _georeferenced_store(tmp_path / "rot.zarr", arrays, _geo(32618, rotated)) == ["spatial_ref"]
+    ds = xr.open_zarr(tmp_path / "rot.zarr")
+    assert "x" not in ds.coords and ds.change_mask.rio.crs.to_epsg() == 32618
+    assert ds.spatial_ref.attrs["GeoTransform"].split() == [repr(v) for v in rotated.to_gdal()]
+    assert ds.change_mask.rio.transform().almost_equals(rotated)
+
+    from rsmb.tiles import GeoInfo
+
+    assert _georeferenced_store(tmp_path / "none.zarr", arrays, GeoInfo()) == []
+    assert set(xr.open_zarr(tmp_path / "none.zarr").coords) == set()

@@ -1,0 +1,354 @@
+"""The figures of ``rsmb report``: PNGs drawn from a detect store, and the block
+reduction that keeps them small.
+
+Large mosaics are reduced band by band straight from zarr (block mean for
+images, block maximum for the mask and the score so that small changes stay
+visible): one full-resolution array is never loaded whole.  The overlay is
+rendered pixel for pixel at the downsampled size; the other figures are drawn
+with matplotlib's object API (no pyplot, no global state).
+"""
+
+import math
+
+import numpy as np
+
+from rsmb.ops import ParameterError
+
+FIGURES = ("overlay.png", "trajectory.png", "gain.png", "agreement.png", "change_score.png")
+_SCORE_PIXELS = 1024 * 1024  # the score figure shows about this many pixels; more would only be resampled
+
+# overlay colours, RGB in [0, 1]
+_NAN_RGB = np.array([0.16, 0.18, 0.32])
+_GRID_RGB = np.array([0.30, 0.85, 1.00])
+_MASK_RGB = np.array([1.00, 0.10, 0.10])
+_EDGE_RGB = np.array([1.00, 0.92, 0.15])
+_GRID_ALPHA = 0.35
+_MASK_ALPHA = 0.45
+
+
+
+def write_figures(group, attrs, out, factor):
+    """Write every figure of :data:`FIGURES` the store has data for.
+
+    Parameters
+    ----------
+    group : zarr.Group
+        A finished detect store.
+    attrs : dict
+        Its root attributes.
+    out : pathlib.Path
+        Directory to write the PNGs into.
+    factor : int
+        Downsampling factor of the overlay (pixels per PNG pixel on a side).
+
+    Returns
+    -------
+    figures : dict
+        File name -> ``{"size": (width, height)}`` in PNG pixels (and ``"vmax"``
+        for the score figure); ``agreement.png`` is missing when the store has
+        no ``tile_agreement``.
+    score_factor : int
+        Downsampling factor of the score figure (at least ``factor``; the figure
+        shows at most about 1024 x 1024 values).
+    """
+    figures = {}
+    figures["overlay.png"] = _write_overlay(group, attrs["tile_grid"], factor, out / "overlay.png")
+    figures["trajectory.png"] = _write_trajectory(group, attrs, out / "trajectory.png")
+    figures["gain.png"] = _write_gain(group, attrs, out / "gain.png")
+    if "tile_agreement" in group:
+        figures["agreement.png"] = _write_agreement(group, attrs, out / "agreement.png")
+    shape = tuple(group["change_score"].shape)
+    score_factor = max(factor, downsample_factor(shape, _SCORE_PIXELS))
+    figures["change_score.png"] = _write_score(group, attrs, score_factor, out / "change_score.png")
+    return figures, score_factor
+
+
+def downsample_factor(shape, max_pixels):
+    """Smallest integer factor ``f`` with ``ceil(H/f) * ceil(W/f) <= max_pixels``."""
+    h, w = shape
+    f = max(1, math.ceil(math.sqrt(h * w / max_pixels)))
+    while math.ceil(h / f) * math.ceil(w / f) > max_pixels:
+        f += 1
+    return f
+
+
+def block_reduce(array, factor, how="mean"):
+    """Reduce a 2-D (zarr or numpy) array by ``factor`` in both axes, band by band.
+
+    Parameters
+    ----------
+    array : zarr.Array or ndarray, shape (H, W)
+    factor : int
+        Block side, pixels; edge blocks are partial.
+    how : {"mean", "max"}
+        NaN-ignoring block mean or block maximum; an all-NaN block gives NaN.
+
+    Returns
+    -------
+    ndarray, float32, shape (ceil(H / factor), ceil(W / factor))
+    """
+    h, w = array.shape
+    oh, ow = -(-h // factor), -(-w // factor)
+    out = np.empty((oh, ow), np.float32)
+    chunk_rows = getattr(array, "chunks", (h,))[0]
+    band = factor * max(1, chunk_rows // factor)
+    for r0 in range(0, h, band):
+        block = np.asarray(array[r0:r0 + band], dtype=np.float32)
+        out[r0 // factor:(r0 + block.shape[0] + factor - 1) // factor] = _reduce_band(block, factor, how)
+    return out
+
+
+# --------------------------------------------------------------------------- block reduction
+
+
+def _reduce_band(block, factor, how):
+    """Block-reduce a band whose row count is a multiple of ``factor`` except at the end."""
+    rows, w = block.shape
+    pr, pc = -rows % factor, -w % factor
+    if pr or pc:
+        block = np.pad(block, ((0, pr), (0, pc)), constant_values=np.nan)
+    cells = block.reshape(block.shape[0] // factor, factor, block.shape[1] // factor, factor)
+    if how == "max":
+        return np.fmax.reduce(np.fmax.reduce(cells, axis=3), axis=1)
+    if how != "mean":
+        raise ParameterError(f"how: expected 'mean' or 'max', got {how!r}")
+    finite = np.isfinite(cells)
+    total = np.where(finite, cells, 0.0).sum(axis=(1, 3), dtype=np.float64)
+    count = finite.sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / count, np.nan).astype(np.float32)
+
+
+def _grid_lines(edges, factor, size):
+    """Inner tile edges (px) as indices into an axis downsampled by ``factor``."""
+    return sorted({min(size - 1, int(e) // factor) for e in list(edges)[1:-1]})
+
+
+# --------------------------------------------------------------------------- overlay
+
+
+def overlay_rgb(gray, mask, row_lines=(), col_lines=()):
+    """Compose the change overlay.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (h, w)
+        Image, any range; NaN where unknown (drawn dark blue).
+    mask : ndarray, shape (h, w)
+        Nonzero where changed: filled red, outlined yellow; components of a
+        few pixels also get a yellow ring.
+    row_lines, col_lines : sequence of int
+        Rows and columns of the faint tile grid.
+
+    Returns
+    -------
+    ndarray, uint8, shape (h, w, 3)
+    """
+    from scipy import ndimage
+
+    finite = np.isfinite(gray)
+    lo, hi = np.percentile(gray[finite], [0.5, 99.5]) if finite.any() else (0.0, 1.0)
+    g = np.clip((np.where(finite, gray, lo) - lo) / max(float(hi - lo), 1e-6), 0.0, 1.0).astype(np.float32)
+    rgb = np.repeat(g[..., None], 3, axis=-1)
+    del g
+    rgb[~finite] = _NAN_RGB
+    rows, cols = list(row_lines), list(col_lines)
+    rgb[rows, :] = (1 - _GRID_ALPHA) * rgb[rows, :] + _GRID_ALPHA * _GRID_RGB
+    rgb[:, cols] = (1 - _GRID_ALPHA) * rgb[:, cols] + _GRID_ALPHA * _GRID_RGB
+    changed = np.asarray(mask) > 0
+    rgb[changed] = (1 - _MASK_ALPHA) * rgb[changed] + _MASK_ALPHA * _MASK_RGB
+    rgb[changed & ~ndimage.binary_erosion(changed, border_value=0)] = _EDGE_RGB
+    rgb[_rings(changed)] = _EDGE_RGB
+    return (rgb * 255.0 + 0.5).astype(np.uint8)
+
+
+def _rings(changed, small=4):
+    """A ring around every component of at most ``small`` pixels, which would
+    otherwise be a dot in a downsampled overlay."""
+    from scipy import ndimage
+
+    labels, count = ndimage.label(changed)
+    if count == 0:
+        return np.zeros_like(changed)
+    area = np.bincount(labels.ravel(), minlength=count + 1)
+    tiny = (area <= small)[labels] & changed
+    if not tiny.any():
+        return np.zeros_like(changed)
+    inner = ndimage.binary_dilation(tiny, iterations=2)
+    return ndimage.binary_dilation(inner) & ~inner & ~changed
+
+
+def _write_overlay(group, grid, factor, path):
+    from PIL import Image
+
+    mask = block_reduce(group["change_mask"], factor, "max")
+    gray = block_reduce(group["registered"], factor, "mean")
+    h, w = gray.shape
+    rgb = overlay_rgb(gray, mask, _grid_lines(grid["row_edges"], factor, h),
+                      _grid_lines(grid["col_edges"], factor, w))
+    Image.fromarray(rgb, mode="RGB").save(path, optimize=True)
+    return {"size": (w, h)}
+
+
+# --------------------------------------------------------------------------- matplotlib figures
+
+
+def _figure(figsize):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize, dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig, path):
+    fig.savefig(path, dpi=100)
+    fig.clear()
+    w, h = fig.canvas.get_width_height()
+    return {"size": (w, h)}
+
+
+def _write_trajectory(group, attrs, path):
+    traj = np.asarray(group["trajectory"][:], dtype=np.float64)
+    axes = list(group["trajectory"].attrs.get("pose_axes", attrs.get("pose_axes", [])))
+    units = list(group["trajectory"].attrs.get("units", attrs.get("pose_units", [""] * len(axes))))
+    per_tile = np.asarray(group["tile_trajectory"][:], dtype=np.float64) if "tile_trajectory" in group else None
+    rows = np.arange(traj.shape[0])
+    edges = attrs["tile_grid"]["row_edges"][1:-1]
+    fig = _figure((10.0, 0.6 + 2.1 * traj.shape[1]))
+    panels = fig.subplots(traj.shape[1], 1, sharex=True, squeeze=False)[:, 0]
+    colors = _tile_colors(0 if per_tile is None else per_tile.shape[1])
+    for d, ax in enumerate(panels):
+        for tx in range(0 if per_tile is None else per_tile.shape[1]):
+            ax.plot(rows, per_tile[:, tx, d], color=colors[tx], lw=0.8, alpha=0.85 if len(colors) <= 10 else 0.5,
+                    label=f"tile column {tx}")
+        ax.plot(rows, traj[:, d], color="black", lw=1.6, label="fused")
+        for e in edges:
+            ax.axvline(e, color="0.45", lw=0.8, ls="--")
+        name = axes[d] if d < len(axes) else f"axis {d}"
+        unit = units[d] if d < len(units) else ""
+        ax.set_ylabel(f"{name} ({unit})" if unit else name)
+        ax.grid(True, color="0.9", lw=0.6)
+        ax.margins(x=0)
+    panels[-1].set_xlabel("row (px); dashed: tile-row boundaries")
+    _trajectory_legend(fig, panels[0], per_tile)
+    panels[0].set_title("Per-row camera pose (centroid)")
+    return _save(fig, path)
+
+
+def _tile_colors(n):
+    from matplotlib import colormaps
+
+    cmap = colormaps["tab10" if n <= 10 else "viridis"]
+    return [cmap(i if n <= 10 else i / max(n - 1, 1)) for i in range(n)]
+
+
+def _trajectory_legend(fig, ax, per_tile):
+    handles, labels = ax.get_legend_handles_labels()
+    handles, labels = handles[-1:] + handles[:-1], labels[-1:] + labels[:-1]  # fused first
+    if per_tile is not None and per_tile.shape[1] > 8:  # one entry for all tile columns
+        handles, labels = handles[:2], ["fused", f"tile columns 0..{per_tile.shape[1] - 1}"]
+    fig.legend(handles, labels, loc="outside upper center", ncol=len(handles), fontsize=9, frameon=False)
+
+
+def _tile_map(values, *, title, label, fmt, cmap, vmin=None, vmax=None, marked=(), marked_label=None,
+              line=None):
+    """Figure of a (tiles_y, tiles_x) map with its values written in the cells."""
+    from matplotlib import colormaps
+    from matplotlib.patches import Patch, Rectangle
+    from matplotlib.ticker import ScalarFormatter
+
+    ny, nx = values.shape
+    fig = _figure((min(11.0, max(6.4, 0.95 * nx + 2.6)), min(10.0, max(3.6, 0.8 * ny + 1.8))))
+    ax = fig.subplots()
+    image = ax.imshow(np.ma.masked_invalid(values), cmap=colormaps[cmap].with_extremes(bad="0.85"),
+                      vmin=vmin, vmax=vmax, interpolation="nearest", aspect="auto")
+    bar = fig.colorbar(image, ax=ax, label=label if line is None else f"{label}; line: {line[1]}")
+    bar.formatter = ScalarFormatter(useOffset=False)
+    bar.update_ticks()
+    if line is not None:
+        bar.ax.axhline(line[0], color="black", lw=2)
+    _annotate_cells(ax, image, values, fmt)
+    for ty, tx in marked:
+        ax.add_patch(Rectangle((tx - 0.47, ty - 0.47), 0.94, 0.94, fill=False, ec="red", lw=2.5, ls="--"))
+    if marked and marked_label:
+        fig.legend([Patch(fill=False, ec="red", lw=2, ls="--")], [marked_label], loc="outside lower center",
+                   fontsize=9, frameon=False)
+    ax.set_xticks(_ticks(nx))
+    ax.set_yticks(_ticks(ny))
+    ax.set_xlabel("tile column (tile_x)")
+    ax.set_ylabel("tile row (tile_y)")
+    ax.set_title(title)
+    return fig
+
+
+def _ticks(n):
+    return list(range(0, n, max(1, math.ceil(n / 16))))
+
+
+def _annotate_cells(ax, image, values, fmt):
+    ny, nx = values.shape
+    if ny * nx > 400:
+        return
+    size = 10 if ny * nx <= 36 else (8 if ny * nx <= 144 else 6)
+    for ty in range(ny):
+        for tx in range(nx):
+            v = values[ty, tx]
+            if not np.isfinite(v):
+                ax.text(tx, ty, "n/a", ha="center", va="center", fontsize=size, color="0.3")
+                continue
+            r, g, b, _ = image.cmap(image.norm(v))
+            color = "black" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "white"
+            ax.text(tx, ty, format(float(v), fmt), ha="center", va="center", fontsize=size, color=color)
+
+
+def _write_gain(group, attrs, path):
+    gain = np.asarray(group["gain"][:], dtype=np.float64)
+    fig = _tile_map(gain, title="Illumination gain per tile", label="gain (capture / reference)",
+                    fmt=".4f", cmap="cividis")
+    return _save(fig, path)
+
+
+def _write_agreement(group, attrs, path):
+    agree = np.asarray(group["tile_agreement"][:], dtype=np.float64)
+    summary = attrs.get("summary", {})
+    resolved = [tuple(t) for t in summary.get("resolved_tiles", [])]
+    tolerance = (attrs.get("parameters") or {}).get("agreement")
+    finite = agree[np.isfinite(agree)]
+    top = max([float(finite.max()) if finite.size else 0.0] + ([1.2 * tolerance] if tolerance else []))
+    fig = _tile_map(agree, title="Tile path vs fused path", label="disagreement (px)",
+                    fmt=".2f", cmap="magma_r", vmin=0.0, vmax=max(top, 1e-3), marked=resolved,
+                    marked_label="re-solved around the other tiles' path",
+                    line=(tolerance, f"tolerance {tolerance:g} px") if tolerance else None)
+    return _save(fig, path)
+
+
+def _score_vmax(score, threshold):
+    """Top of the colour scale: the 99th percentile of the scores above the
+    threshold (changes are sparse, a plain percentile would be zero), at least
+    twice the threshold."""
+    finite = score[np.isfinite(score)]
+    floor = 2.0 * threshold if threshold else 0.0
+    above = finite[finite > (threshold or 0.0)]
+    top = float(np.percentile(above, 99.0)) if above.size else (float(finite.max()) if finite.size else 1.0)
+    return max(top, floor, 1e-6)
+
+
+def _write_score(group, attrs, factor, path):
+    score = block_reduce(group["change_score"], factor, "max")
+    threshold = (attrs.get("summary") or {}).get("threshold")
+    h, w = score.shape
+    vmax = _score_vmax(score, threshold)
+    fig = _figure((11.0, min(14.0, max(3.0, 9.4 * h / w + 0.9))))
+    ax = fig.subplots()
+    image = ax.imshow(score, cmap="inferno", vmin=0.0, vmax=vmax, interpolation="nearest",
+                      extent=(-0.5, w * factor - 0.5, h * factor - 0.5, -0.5))
+    label = "change score (intensity units)" + ("; cyan line: threshold" if threshold is not None else "")
+    bar = fig.colorbar(image, ax=ax, label=label, extend="max")
+    if threshold is not None:
+        bar.ax.axhline(threshold, color="cyan", lw=2)
+    ax.set_xlabel("column (px)")
+    ax.set_ylabel("row (px)")
+    ax.set_title("Change score" + (f" (block maximum of {factor} x {factor} px)" if factor > 1 else ""))
+    return {**_save(fig, path), "vmax": vmax}

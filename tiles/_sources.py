@@ -1,0 +1,300 @@
+"""Input formats: one small reader per format behind one dispatch.
+
+:func:`open_source` picks the reader of a path: rasterio (GDAL) for GeoTIFF/TIFF,
+PNG and JPEG files, numpy for ``.npy`` files, zarr for an array directory.  Every
+reader answers the same three questions, with the dtype and luminance policy of
+:mod:`._luminance`:
+
+- ``probe()``: shape (H, W) and georeferencing, without reading pixels;
+- ``read(rows, cols)``: luminance and validity of the whole image or a window,
+  reading only that window;
+- ``sha256()``: the checksum recorded in the output store.
+
+Adding a format is one subclass of :class:`_Source` listed in ``_FORMATS``.
+Errors are :class:`InputError` with one line that starts with the path.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import warnings
+
+import numpy as np
+
+from rsmb.ops._errors import InputError, ParameterError, one_line
+
+from ._gdal import gdal_errors
+from ._geo import GeoInfo
+from ._luminance import array_to_luminance, bands_to_luminance, default_alpha_index
+
+_HASH_BLOCK = 1 << 20
+
+
+def resolve_slice(index: slice | None, size: int, label: str) -> tuple[int, int]:
+    """``(start, stop)`` of a step-1 slice clipped to ``size`` (None: everything).
+
+    Raises
+    ------
+    ParameterError
+        If ``index`` is not a slice or its step is not 1; ``label`` names it.
+    """
+    if index is None:
+        index = slice(None)
+    if not isinstance(index, slice):
+        raise ParameterError(f"{label}: expected a slice, got {type(index).__name__}")
+    start, stop, step = index.indices(size)
+    if step != 1:
+        raise ParameterError(f"{label}: expected a slice with step 1, got step {step}")
+    return start, max(start, stop)
+
+
+def sha256_file(path: str) -> str:
+    """Hex SHA-256 of a file's bytes, read in blocks of 1 MiB."""
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(_HASH_BLOCK), b""):
+                digest.update(block)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read file ({one_line(exc)})") from exc
+    return digest.hexdigest()
+
+
+def sha256_array(array) -> str:
+    """Digest of the C-order bytes of a numpy or zarr array, read by strips of
+    chunk rows (a zarr input is never loaded whole)."""
+    digest = hashlib.sha256()
+    step = max(int(getattr(array, "chunks", (256,))[0]), 1)
+    for r0 in range(0, array.shape[0], step):
+        digest.update(np.ascontiguousarray(array[r0:r0 + step]).tobytes())
+    return digest.hexdigest()
+
+
+# ----------------------------------------------------------------------- the base
+
+
+class _Source:
+    """An input image at ``path``; each subclass reads one format.
+
+    Attributes
+    ----------
+    extensions : tuple of str
+        Lower-case file extensions of the format (empty for a directory format).
+    label : str or None
+        How the unsupported-format message names a format without an extension.
+    """
+
+    extensions: tuple[str, ...] = ()
+    label: str | None = None
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    @classmethod
+    def accepts(cls, path: str) -> bool:
+        """Whether this format reads the existing ``path`` (by its extension)."""
+        return not os.path.isdir(path) and os.path.splitext(path)[1].lower() in cls.extensions
+
+    def probe(self) -> tuple[tuple[int, int], GeoInfo]:
+        """``((H, W), geo)`` without reading the pixels."""
+        raise NotImplementedError
+
+    def read(
+        self, rows: slice | None = None, cols: slice | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Luminance (float32) and validity (bool), both shape (h, w), of the
+        window ``rows`` x ``cols`` (None: the whole axis)."""
+        raise NotImplementedError
+
+    def sha256(self) -> str:
+        """Hex SHA-256 of the input file's bytes."""
+        return sha256_file(self.path)
+
+
+# ----------------------------------------------------------------------- rasterio
+
+
+class RasterioSource(_Source):
+    """GeoTIFF/TIFF, PNG and JPEG through rasterio (GDAL): windowed reads, every
+    band, alpha from the colour interpretation or the band count."""
+
+    extensions = (".tif", ".tiff", ".png", ".jpg", ".jpeg")
+
+    def _open(self):
+        import rasterio
+        from rasterio.errors import NotGeoreferencedWarning
+
+        with gdal_errors(self.path), warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            return rasterio.open(self.path)
+
+    def probe(self) -> tuple[tuple[int, int], GeoInfo]:
+        with self._open() as ds:
+            return (ds.height, ds.width), _rasterio_geo(ds)
+
+    def read(
+        self, rows: slice | None = None, cols: slice | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        from rasterio.windows import Window
+
+        with self._open() as ds:
+            window = None
+            if rows is not None or cols is not None:
+                r0, r1 = resolve_slice(rows, ds.height, "rows")
+                c0, c1 = resolve_slice(cols, ds.width, "cols")
+                window = Window(c0, r0, c1 - c0, r1 - r0)
+            with gdal_errors(self.path):
+                stack = ds.read(window=window)  # (bands, h, w)
+            if window is None and 0 in stack.shape[1:]:
+                raise InputError(f"{self.path}: is empty (shape {stack.shape[1:]})")
+            return bands_to_luminance(
+                list(stack),
+                alpha_index=_rasterio_alpha_index(ds),
+                nodatavals=list(ds.nodatavals),
+                name=self.path,
+            )
+
+
+def _rasterio_alpha_index(ds) -> int | None:
+    from rasterio.enums import ColorInterp
+
+    for i, interp in enumerate(ds.colorinterp):
+        if interp == ColorInterp.alpha:
+            return i
+    return default_alpha_index(ds.count)
+
+
+def _rasterio_geo(ds) -> GeoInfo:
+    crs = None if ds.crs is None else ds.crs.to_wkt(version="WKT2_2019")
+    transform = tuple(ds.transform)[:6]
+    if crs is None and ds.transform.is_identity:
+        transform = None
+    return GeoInfo(crs=crs, transform=transform, nodata=ds.nodata)
+
+
+# ------------------------------------------------------------------------- arrays
+
+
+class _ArraySource(_Source):
+    """An (H, W) gray or (H, W, 1..4) channel-last array read by slicing."""
+
+    _cached = None
+
+    def _load(self):
+        """The array object (numpy memory map, zarr array): nothing read yet."""
+        raise NotImplementedError
+
+    def _geo(self, array) -> GeoInfo:
+        return GeoInfo()
+
+    def _array(self):
+        if self._cached is None:
+            array = self._load()
+            _check_layout(array.shape, name=self.path)
+            self._cached = array
+        return self._cached
+
+    def probe(self) -> tuple[tuple[int, int], GeoInfo]:
+        array = self._array()
+        return (int(array.shape[0]), int(array.shape[1])), self._geo(array)
+
+    def read(
+        self, rows: slice | None = None, cols: slice | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        array = self._array()
+        r0, r1 = resolve_slice(rows, array.shape[0], "rows")
+        c0, c1 = resolve_slice(cols, array.shape[1], "cols")
+        window = np.asarray(array[r0:r1, c0:c1])
+        return array_to_luminance(window, nodata=self._geo(array).nodata, name=self.path)
+
+
+def _check_layout(shape: tuple[int, ...], *, name: str) -> None:
+    if len(shape) >= 2 and (shape[0] == 0 or shape[1] == 0):
+        raise InputError(f"{name}: is empty (shape {tuple(shape)})")
+    if len(shape) < 2 or 0 in shape:
+        raise InputError(
+            f"{name}: array of shape {tuple(shape)}; expected (H, W) gray or "
+            f"(H, W, 3|4) RGB(A)"
+        )
+
+
+class NumpySource(_ArraySource):
+    """A ``.npy`` file, memory-mapped (never pickled); no georeferencing."""
+
+    extensions = (".npy",)
+
+    def _load(self):
+        try:
+            return np.load(self.path, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{self.path}: cannot read .npy file ({one_line(exc)})") from exc
+
+
+class ZarrSource(_ArraySource):
+    """A zarr v2/v3 array directory (``store.zarr/name``); georeferencing and
+    nodata from its GeoZarr-style attributes (:meth:`GeoInfo.to_attrs`); its
+    checksum is of the array's C-ordered bytes in its stored dtype."""
+
+    label = "a zarr array directory"
+
+    @classmethod
+    def accepts(cls, path: str) -> bool:
+        return os.path.isdir(path)
+
+    def _load(self):
+        import zarr
+
+        try:
+            node = zarr.open(store=self.path, mode="r")
+        except Exception as exc:  # noqa: BLE001 - zarr raises many types for bad stores
+            raise InputError(
+                f"{self.path}: is a directory but not a readable zarr array ({one_line(exc)})"
+            ) from exc
+        if isinstance(node, zarr.Group):
+            names = sorted(name for name, _ in node.arrays())
+            raise InputError(
+                f"{self.path}: is a zarr group, not an array; give <store>/<array> "
+                f"(arrays here: {', '.join(names) or 'none'})"
+            )
+        return node
+
+    def _geo(self, array) -> GeoInfo:
+        try:
+            return GeoInfo.from_attrs(dict(array.attrs))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(
+                f"{self.path}: invalid georeferencing attributes ({one_line(exc)})"
+            ) from exc
+
+    def sha256(self) -> str:
+        return sha256_array(self._array())
+
+
+# ----------------------------------------------------------------------- dispatch
+
+#: The formats, asked in this order; a directory is only ever a zarr array.
+_FORMATS: tuple[type[_Source], ...] = (ZarrSource, RasterioSource, NumpySource)
+
+
+def open_source(path: str) -> _Source:
+    """The reader of an existing input ``path``.
+
+    Raises
+    ------
+    InputError
+        If ``path`` does not exist or no format reads it (the message lists the
+        supported extensions).
+    """
+    if not os.path.exists(path):
+        raise InputError(f"{path}: no such file or directory")
+    for fmt in _FORMATS:
+        if fmt.accepts(path):
+            return fmt(path)
+    extensions = ", ".join(ext for fmt in _FORMATS for ext in fmt.extensions)
+    others = "".join(f" or {fmt.label}" for fmt in _FORMATS if fmt.label)
+    ext = os.path.splitext(path)[1].lower()
+    raise InputError(
+        f"{path}: unsupported format {ext or '(no extension)'!r}; "
+        f"expected one of {extensions}{others}"
+    )
