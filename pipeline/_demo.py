@@ -12,6 +12,7 @@ import logging
 from pathlib import Path
 
 from rsmb import ops
+from rsmb import tiles
 from rsmb.ops import InputError
 
 from ._detect import DetectConfig, detect
@@ -33,8 +34,11 @@ def run_demo(out_dir="rsmb-demo", *, size=2048, tile=None, changes=40, seed=0, s
         If ``out_dir`` holds a previous demo and ``overwrite`` is False.
     """
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: output exists and is a file")
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise InputError(f"{out}: output exists and is not empty; pass --overwrite to replace it")
+    tiles.check_writable(out / "pair")
     log.info("demo: synthesising a %d x %d scene with %d changes", size, size, changes)
     pair = ops.synthesize_pair((size, size), motion="inplane", gain=(0.85, 1.15), changes=changes,
                                change_size=(16, 48), noise=0.002, seed=seed)

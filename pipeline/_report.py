@@ -105,6 +105,7 @@ def _prepare_out_dir(store, out_dir, overwrite):
         raise InputError(f"{out}: report directory exists and is a file")
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise InputError(f"{out}: report directory exists and is not empty; pass --overwrite to replace it")
+    tiles.check_writable(out / "index.html")
     out.mkdir(parents=True, exist_ok=True)
     if overwrite:
         for name in FIGURES + ("index.html",):

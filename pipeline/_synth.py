@@ -59,6 +59,18 @@ def _write_image(path, image, fmt):
         raise InputError(f"{path}: could not write the image")
 
 
+def _check_out_dir(out_dir, overwrite):
+    """``out_dir`` as a Path, refused when it is a file, holds files without
+    ``overwrite``, or cannot be created."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: output exists and is a file")
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise InputError(f"{out}: output exists and is not empty; pass --overwrite to replace it")
+    tiles.check_writable(out / "truth")
+    return out
+
+
 def synth(out_dir, *, shape=(512, 512), motion="inplane", shutter="rolling", exposure=None, scale=1.0, gain=1.0,
           changes=8, noise=0.002, seed=0, fmt="png", overwrite=False):
     """Make a synthetic pair with its truth (:func:`ops.synthesize_pair`) and
@@ -67,6 +79,7 @@ def synth(out_dir, *, shape=(512, 512), motion="inplane", shutter="rolling", exp
     ``gain`` is a number or a (left, right) pair (a gain varying across the
     columns); the other parameters are those of :func:`ops.synthesize_pair`.
     """
+    _check_out_dir(out_dir, overwrite)
     gain = tuple(gain) if isinstance(gain, (list, tuple)) else gain
     if isinstance(gain, tuple) and len(gain) == 1:
         gain = gain[0]
@@ -83,9 +96,7 @@ def write_pair(out_dir, pair, *, fmt="png", overwrite=False, meta=None):
 
     if fmt not in FORMATS:
         raise ops.ParameterError(f"format: expected one of {FORMATS}, got {fmt!r}")
-    out = Path(out_dir)
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise InputError(f"{out}: output exists and is not empty; pass --overwrite to replace it")
+    out = _check_out_dir(out_dir, overwrite)
     (out / "truth").mkdir(parents=True, exist_ok=True)
     ref_path, dist_path = out / f"reference.{fmt}", out / f"distorted.{fmt}"
     _write_image(ref_path, pair.reference, fmt)

@@ -41,6 +41,27 @@ def _floats(text, name, count=None, allow_auto=False, minimum=None, positive=Fal
     return tuple(values) if count is None or len(values) == count else tuple(values) * count
 
 
+class Number(click.ParamType):
+    """A finite number, optionally bounded below (``min`` inclusive, or
+    exclusive with ``min_open``): click's FloatRange lets NaN through."""
+
+    name = "number"
+
+    def __init__(self, min=None, min_open=False):
+        self.min, self.min_open = min, min_open
+
+    def convert(self, value, param, ctx):
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"expected a number, got {value!r}", param, ctx)
+        if not np.isfinite(number):
+            self.fail(f"expected a finite number, got {value!r}", param, ctx)
+        if self.min is not None and (number < self.min or (self.min_open and number == self.min)):
+            self.fail(f"expected a number {'>' if self.min_open else '>='} {self.min:g}, got {value!r}", param, ctx)
+        return number
+
+
 def _check_threshold(ctx, param, value):
     try:
         ops.ChangeParams(threshold=value)
@@ -100,16 +121,16 @@ def registration_options(func):
         click.option("--solver", type=click.Choice(["fast", "exact"]), default="fast", show_default=True,
                      help="Row solver: the fast active-set solver or the exact cvxpy (CLARABEL) oracle "
                           "(seconds per row; small images only)."),
-        click.option("--lambda-w", type=click.FloatRange(min=0), default=1e-3, show_default=True,
+        click.option("--lambda-w", type=Number(min=0), default=1e-3, show_default=True,
                      help="Weight of ||w||_1 in eq. 13 (intensities in [0, 1])."),
-        click.option("--lambda-chi", type=click.FloatRange(min=0, min_open=True), default=0.02, show_default=True,
+        click.option("--lambda-chi", type=Number(min=0, min_open=True), default=0.02, show_default=True,
                      help="Weight of ||chi||_1 in eq. 13; residuals above half of it count as change."),
         click.option("--threshold", default="noise", show_default=True, callback=_check_threshold,
                      help="Change threshold: 'noise' (k robust sigmas of the residual), 'kapur' (the paper's "
                           "entropy threshold) or a number (score units, intensities in [0, 1])."),
         click.option("--min-area", type=click.IntRange(min=0), default=20, show_default=True,
                      help="Smallest change kept, pixels."),
-        click.option("--focal", type=click.FloatRange(min=0, min_open=True), default=None,
+        click.option("--focal", type=Number(min=0, min_open=True), default=None,
                      help="Focal length in pixels of the whole image. Default 1.2 x the larger side."),
     ]
     for option in reversed(options):
@@ -203,12 +224,12 @@ def _print_summary(summary, as_json):
 @click.option("--size", default="512,512", show_default=True, help="H,W of the images.")
 @click.option("--motion", type=click.Choice(sorted(ops.MOTIONS)), default="inplane", show_default=True)
 @click.option("--shutter", type=click.Choice(["rolling", "global"]), default="rolling", show_default=True)
-@click.option("--exposure", type=float, default=None, help="Row exposure in row periods (default H/16).")
-@click.option("--scale", type=float, default=1.0, show_default=True, help="Multiplies every motion amplitude.")
+@click.option("--exposure", type=Number(min=0), default=None, help="Row exposure in row periods (default H/16).")
+@click.option("--scale", type=Number(), default=1.0, show_default=True, help="Multiplies every motion amplitude.")
 @click.option("--gain", default="1.0", show_default=True,
               help="Illumination gain, or LEFT,RIGHT for a gain varying across the columns.")
-@click.option("--changes", type=int, default=8, show_default=True, help="Number of pasted objects.")
-@click.option("--noise", type=float, default=0.002, show_default=True, help="Noise sigma, intensities in [0, 1].")
+@click.option("--changes", type=click.IntRange(min=0), default=8, show_default=True, help="Number of pasted objects.")
+@click.option("--noise", type=Number(min=0), default=0.002, show_default=True, help="Noise sigma, intensities in [0, 1].")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--format", "fmt", type=click.Choice(["png", "tif", "npy"]), default="png", show_default=True,
               help="png (16 bit), tif (GeoTIFF with a made-up UTM georeferencing) or npy (float32).")
@@ -217,11 +238,11 @@ def synth(out_dir, size, motion, shutter, exposure, scale, gain, changes, noise,
     """Make a reference, a distorted capture and the truth in OUT_DIR."""
     from ._synth import synth as run
 
-    shape = tuple(int(v) for v in _floats(size, "--size"))
+    shape = tuple(int(v) for v in _floats(size, "--size", minimum=32))
     if len(shape) != 2:
         raise click.BadParameter("expected H,W", param_hint="--size")
     ref, dist = run(out_dir, shape=shape, motion=motion, shutter=shutter, exposure=exposure, scale=scale,
-                    gain=_floats(gain, "--gain"), changes=changes, noise=noise, seed=seed, fmt=fmt,
+                    gain=_floats(gain, "--gain", positive=True), changes=changes, noise=noise, seed=seed, fmt=fmt,
                     overwrite=overwrite)
     click.echo(f"wrote {ref}, {dist} and the truth in {out_dir}/truth")
 
@@ -268,7 +289,7 @@ def bench(sections, data, quick, sizes, workers, tile_size, json_path):
     unknown = [x for x in chosen if x not in SECTIONS]
     if unknown:
         raise click.BadParameter(f"unknown sections {unknown}; expected some of {SECTIONS}", param_hint="--sections")
-    size_list = tuple(int(v) for v in _floats(sizes, "--sizes")) if sizes else None
+    size_list = tuple(int(v) for v in _floats(sizes, "--sizes", minimum=64)) if sizes else None
     results = run_bench(sections=chosen, data=data, quick=quick, sizes=size_list, workers=workers, tile=tile_size)
     if json_path:
         with open(json_path, "w") as fh:

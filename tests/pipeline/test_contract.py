@@ -170,3 +170,41 @@ def test_kill_between_the_renames_of_an_overwrite_is_repaired(tmp_path, small_pa
     assert main(["-q", "detect", str(ref), str(dist), "-o", str(out), "--tile-size", "128"]) == 2
     assert sorted(os.listdir(tmp_path)) == ["o.zarr"]
     assert read_store(out)[1]["parameters"]["changes"]["min_area"] == 30
+
+
+def _other_commands(tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("not a directory")
+    return [
+        (["synth", str(afile / "pair")], str(afile / "pair")),
+        (["synth", str(afile)], str(afile)),
+        (["synth", str(tmp_path / "s"), "--size", "10,10"], "--size"),
+        (["synth", str(tmp_path / "s"), "--size", "64"], "--size"),
+        (["synth", str(tmp_path / "s"), "--gain", "-1"], "--gain"),
+        (["synth", str(tmp_path / "s"), "--noise", "-1"], "--noise"),
+        (["synth", str(tmp_path / "s"), "--scale", "nan"], "--scale"),
+        (["synth", str(tmp_path / "s"), "--changes", "-1"], "--changes"),
+        (["synth", str(tmp_path / "s"), "--exposure", "-3"], "--exposure"),
+        (["synth", str(tmp_path / "s"), "--format", "gif"], "--format"),
+        (["evaluate", str(tmp_path / "nope.zarr"), str(tmp_path)], str(tmp_path / "nope.zarr")),
+        (["report", str(tmp_path / "nope.zarr")], str(tmp_path / "nope.zarr")),
+        (["report", str(afile)], str(afile)),
+        (["demo", "-o", str(afile / "d")], str(afile / "d")),
+        (["demo", "--size", "10"], "--size"),
+        (["demo", "--tile-size", "3"], "--tile-size"),
+        (["demo", "--scheduler", "nope"], "--scheduler"),
+        (["bench", "--sections", "foo"], "--sections"),
+        (["bench", "--workers", "0"], "--workers"),
+        (["bench", "--sizes", "0"], "--sizes"),
+        (["run", str(tmp_path / "nope.yaml")], str(tmp_path / "nope.yaml")),
+        (["run", str(afile), "--scheduler", "bogus"], "--scheduler"),
+    ]
+
+
+def test_other_commands_keep_the_contract(tmp_path, capsys):
+    cases = _other_commands(tmp_path)
+    for args, named in cases:
+        assert main(args) == 2, args
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and named in err[0], (args, err)
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"], args

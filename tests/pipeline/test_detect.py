@@ -211,3 +211,20 @@ def test_distributed_cluster_gives_the_same_result(tmp_path, small_pair_files, d
         detect(ref, dist, store, config=DetectConfig(tile=128), scheduler=scheduler)
         for name in ("change_mask", "registered", "trajectory"):
             np.testing.assert_array_equal(read_store(local)[0][name], read_store(store)[0][name])
+
+
+def test_store_opens_with_coordinates_and_crs(tmp_path, geotiff_pair_files):
+    import rasterio
+    import rioxarray  # noqa: F401 - registers .rio
+    import xarray as xr
+
+    _, ref, dist = geotiff_pair_files
+    store = tmp_path / "geo.zarr"
+    detect(ref, dist, store, config=DetectConfig(tile=128))
+    ds = xr.open_zarr(store)
+    with rasterio.open(dist) as src:
+        transform, epsg, (h, w) = src.transform, src.crs.to_epsg(), src.shape
+    np.testing.assert_allclose(ds.x.values, transform.c + transform.a * (np.arange(w) + 0.5))
+    np.testing.assert_allclose(ds.y.values, transform.f + transform.e * (np.arange(h) + 0.5))
+    assert ds.change_mask.rio.crs.to_epsg() == epsg == 32618
+    assert ds.change_mask.rio.transform() == transform
