@@ -79,9 +79,8 @@ class _RowProblem:
         slots of bands two or more away, else those of the neighbouring bands
         (rows are solved band after band, so other bands are rarely needed again,
         and warping again gives the same image), else a stack a quarter larger.
-        This keeps a tile's memory to about two bands of rotations: at an
-        8192 x 8192 image's corner tile, 50 slots instead of 128 with no more
-        warps."""
+        This keeps a tile's memory to about two bands of rotations instead of
+        every band it ever used, with no more warps."""
         if not self.free:
             for distance in (2, 1):
                 stale = [kb for kb in self.slots if abs(kb[1] - band) >= distance]

@@ -28,8 +28,6 @@ import dataclasses
 import hashlib
 import json
 import logging
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
@@ -44,6 +42,7 @@ from rsmb.ops import ChangeParams, InputError, RegistrationParams
 from . import _tasks
 from ._tasks import _specs, _tile_done, _tile_results
 from ._fuse import _agreement, _fuse, _outliers
+from ._outputs import _check_outputs, _finished, _write_geotiffs
 from ._scheduler import check_scheduler, open_runner
 
 __all__ = ["DetectConfig", "DetectResult", "detect", "default_overlap", "default_tile", "VERSION"]
@@ -144,9 +143,9 @@ class DetectResult:
 
 def default_tile(shape):
     """1024-px tiles when the image holds at least 4 x 4 of them, else 512: large
-    tiles pay the per-tile start (wide search, start block) a quarter as often
-    (8192^2: 0.90 against 0.66 MP/s), small ones keep both cores busy on small
-    images (2048^2 in four tiles leaves a core idle while the slowest finishes).
+    tiles pay the per-tile start (wide search, start block) a quarter as often,
+    small ones keep the cores busy on small images (four tiles on two cores
+    leave a core idle while the slowest finishes).
     Depends on the shape only, so a ``--resume`` finds the same grid."""
     return 1024 if min(shape) >= 4 * 1024 else 512
 
@@ -170,8 +169,8 @@ def default_overlap(params, camera, shape):
 def _expected_cost(tile, camera):
     """Relative registration cost of a tile: its area times the distance of its
     farthest pixel from the principal point (rotation moves far pixels more, so
-    their neighbourhoods and blur are larger: corner tiles run about three times
-    longer than central ones).  The longest tiles are started first."""
+    their neighbourhoods and blur are larger: corner tiles run longer than
+    central ones).  The longest tiles are started first."""
     (r0, r1), (c0, c1) = [(s.start, s.stop) for s in tile.core]
     far = np.hypot(max(abs(c0 - camera.center_xy[0]), abs(c1 - camera.center_xy[0])),
                    max(abs(r0 - camera.center_xy[1]), abs(r1 - camera.center_xy[1])))
@@ -194,9 +193,8 @@ BLOCK = 1024  # px: the side the ingest, label and mask tasks aim for
 def _block_grid(grid):
     """Blocks of tiles for ingest, labelling and masks: about :data:`BLOCK` px on a
     side and at least two per axis when there are four tiles or more (both cores
-    stay busy).  Those tasks cost a few zarr calls (about 1 ms each) and read
-    a margin or halo around their core: per block, not per small tile.  At
-    8192 x 8192 with 512-px tiles, 64 blocks instead of 256 tiles."""
+    stay busy).  Those tasks cost a few zarr calls and read a margin or halo
+    around their core: per block, not per small tile."""
     ny, nx = grid.grid_shape
     return grid.coarsened(max(1, min(BLOCK // grid.tile, ny // 2, nx // 2)))
 
@@ -418,9 +416,9 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
     config = config or DetectConfig()
     plan = _plan(reference, distorted, output, config)
     if resume:
-        done = _finished(output, plan)
+        done = _finished(output, plan.key)
         if done is not None:
-            return done
+            return DetectResult(**done)
     check_scheduler(scheduler)
     _check_outputs(output, geotiff, overwrite)
     group = tiles.create_result_store(output, _specs(plan.grid, len(plan.params.axes)), {"run_key": plan.key},
@@ -457,59 +455,3 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
         if isinstance(error, InputError) or not _tasks.resume_safe(group):
             tiles.abort_result_store(store)
         raise
-
-
-GEOTIFFS = ("change_mask.tif", "change_mask_reference.tif", "change_score.tif")
-
-
-def _check_outputs(output, geotiff, overwrite):
-    """Refuse outputs that cannot be written or that exist without
-    ``overwrite``, before any work starts."""
-    tiles.repair_interrupted_overwrite(output)
-    if os.path.lexists(output) and not overwrite:
-        raise InputError(f"{output}: output exists; pass --overwrite to replace it")
-    tiles.check_writable(output)
-    if geotiff is None:
-        return
-    directory = Path(geotiff)
-    if os.path.lexists(directory) and not directory.is_dir():
-        raise InputError(f"{directory}: --geotiff must be a directory, this is a file")
-    for name in GEOTIFFS:
-        if os.path.lexists(directory / name) and not overwrite:
-            raise InputError(f"{directory / name}: exists; pass --overwrite to replace it")
-    tiles.check_writable(directory / GEOTIFFS[0])
-
-
-def _finished(output, plan):
-    """The result of a finished store at ``output`` made by the same run (a
-    ``--resume`` of it is complete already), else None; a finished store of
-    another run is refused."""
-    if not tiles.is_complete_store(output):
-        return None
-    attrs = tiles.open_result_store(output).attrs.asdict()
-    if attrs.get("run_key") != plan.key:
-        raise InputError(f"{output}: finished by a run with other inputs or parameters; pass --overwrite "
-                         f"instead of --resume to replace it")
-    log.info("%s: already complete", output)
-    return DetectResult(**attrs["summary"])
-
-
-def _write_geotiffs(store, directory, ref_info, dist_info):
-    """The masks and the score as GeoTIFFs, each written aside and renamed
-    into place."""
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    group = tiles.open_result_store(store)
-    sources = {"change_mask.tif": ("change_mask", dist_info.geo),
-               "change_mask_reference.tif": ("change_mask_reference", ref_info.geo),
-               "change_score.tif": ("change_score", dist_info.geo)}
-    for name in GEOTIFFS:
-        array, geo = sources[name]
-        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tif", dir=directory)
-        os.close(fd)
-        try:
-            tiles.write_geotiff(tmp, group[array], geo)
-            os.replace(tmp, directory / name)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)

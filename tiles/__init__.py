@@ -3,7 +3,7 @@ stores and the seam merge of per-tile labels."""
 
 from ._grid import Tile, TileGrid
 from ._ingest import WindowStats, check_stats, ingest_core, read_padded
-from ._geo import GeoInfo
+from ._geo import GeoInfo, write_spatial_coords
 from ._io import (
     ImageInfo,
     Raster,
@@ -27,7 +27,6 @@ from ._store import (
     partial_path,
     repair_interrupted_overwrite,
     write_array,
-    write_spatial_coords,
 )
 
 __all__ = [

@@ -22,6 +22,8 @@ from rsmb.ops._errors import ParameterError
 
 from ._json import float_from_json, jsonable
 
+__all__ = ["GeoInfo", "write_spatial_coords"]
+
 
 
 @dataclass(frozen=True)
@@ -215,3 +217,57 @@ def cf_grid_mapping(geo: GeoInfo) -> dict[str, Any]:
         a, b, c, d, e, f = geo.transform
         attrs["GeoTransform"] = " ".join(repr(float(v)) for v in (c, a, b, f, d, e))
     return attrs
+
+
+def write_spatial_coords(group, geo, shape: tuple[int, int]) -> list[str]:
+    """Write the CF coordinates of a georeferenced store, as rioxarray reads them.
+
+    For a rotation-free transform, 1-D float64 arrays ``x`` (W,) and ``y`` (H,)
+    of the pixel centres (:func:`pixel_centres`) with ``dimension_names`` ("x",)
+    and ("y",) and CF attributes (:func:`cf_xy_attrs`); a rotated or sheared
+    transform gets no x/y arrays (1-D coordinates cannot describe it) but keeps
+    its ``GeoTransform``.  With a CRS, a scalar int64 array ``spatial_ref`` (value
+    0) holding the CF grid mapping (:func:`cf_grid_mapping`), named in the
+    ``grid_mapping`` and ``coordinates`` attributes of every array whose
+    dimensions are ("y", "x") (``coordinates`` is how xarray keeps a scalar
+    coordinate).  Then ``xr.open_zarr(store)`` has x/y coordinates and
+    ``.rio.crs`` / ``.rio.transform()`` of rioxarray give the input's CRS and
+    transform.  Call it before :func:`finalize_result_store` consolidates the
+    metadata; existing ``x``, ``y``, ``spatial_ref`` arrays are replaced.
+
+    Parameters
+    ----------
+    group : zarr.Group
+        A writable store, e.g. from :func:`create_result_store`.
+    geo : GeoInfo
+        The georeferencing of the (y, x) arrays; nothing is written without a
+        transform.
+    shape : tuple of int
+        (H, W) of the (y, x) arrays, pixels.
+
+    Returns
+    -------
+    list of str
+        Names of the arrays written.
+    """
+    if geo.transform is None:
+        return []
+    written = []
+    if is_rotation_free(geo.transform):
+        x, y = pixel_centres(geo.transform, shape)
+        for name, values, attrs in zip(("x", "y"), (x, y), cf_xy_attrs(geo.crs)):
+            array = group.create_array(name, shape=values.shape, dtype="float64", chunks=values.shape,
+                                       dimension_names=(name,), fill_value=float("nan"), overwrite=True)
+            array[:] = values
+            array.attrs.update(attrs)
+            written.append(name)
+    if geo.crs is not None:
+        ref = group.create_array("spatial_ref", shape=(), dtype="int64", dimension_names=(),
+                                 fill_value=0, overwrite=True)
+        ref[...] = 0
+        ref.attrs.update(jsonable(cf_grid_mapping(geo)))
+        written.append("spatial_ref")
+        for _, array in group.arrays():
+            if tuple(array.metadata.dimension_names or ()) == ("y", "x"):
+                array.attrs.update({"grid_mapping": "spatial_ref", "coordinates": "spatial_ref"})
+    return written

@@ -6,11 +6,9 @@ tile, or block of whole tiles, is read from the input with a windowed read and
 written by one task, so no step holds the whole image.
 
 A tile task reads its core plus halo with :func:`read_padded`, which touches
-up to nine chunks.  The alternative, baking each tile's halo into one chunk
-of its own, was measured and dropped: with the default halo of an 8192 x 8192
-image (258 px around 512-px tiles) it writes and decodes four times the image
-(ingest 6.9 s of a 144 s run, 4.8 %), while nine uncompressed chunk reads cost
-about 5 ms per tile against about 1 s of registration.
+up to nine chunks.  Baking each tile's halo into a chunk of its own would
+write and decode the image several times over when halos are large, to save
+a few chunk reads per tile.
 """
 
 from dataclasses import dataclass

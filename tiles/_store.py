@@ -11,7 +11,7 @@ run never leaves a half-written store at ``<path>``.  Every array carries
 opens it with dims such as ``change_mask (y, x)``, ``trajectory (row, axis)`` and
 ``gain (tile_y, tile_x)`` and without warnings; no extra argument is needed.
 A georeferenced store also has ``x`` / ``y`` coordinates and a CF ``spatial_ref``
-(:func:`write_spatial_coords`), which rioxarray reads.
+(:func:`tiles.write_spatial_coords`), which rioxarray reads.
 (A store that was not finalized has no consolidated metadata: open it with
 ``xr.open_zarr(path, consolidated=False)``.)
 """
@@ -30,7 +30,6 @@ import numpy as np
 
 from rsmb.ops._errors import InputError, ParameterError, one_line
 
-from ._geo import cf_grid_mapping, cf_xy_attrs, is_rotation_free, pixel_centres
 from ._json import jsonable
 
 __all__ = [
@@ -44,7 +43,6 @@ __all__ = [
     "open_result_store",
     "partial_path",
     "write_array",
-    "write_spatial_coords",
 ]
 
 _PARTIAL = ".partial"
@@ -75,8 +73,8 @@ class ArraySpec:
     fill_value : int or float, default 0
         Value of chunks never written.
     compressed : bool, default True
-        Blosc LZ4 with byte shuffle (on float32 images, about twice as fast as
-        zarr's default zstd and 10 % smaller); False for scratch arrays that
+        Blosc LZ4 with byte shuffle (fast to write, see the README's figures);
+        False for scratch arrays that
         are written once, read once and deleted.
     """
 
@@ -419,60 +417,6 @@ def abort_result_store(tmp_group_or_path) -> None:
             f"store: expected a partial store '<name>{_PARTIAL}', got {tmp}"
         )
     shutil.rmtree(tmp, ignore_errors=True)
-
-
-def write_spatial_coords(group, geo, shape: tuple[int, int]) -> list[str]:
-    """Write the CF coordinates of a georeferenced store, as rioxarray reads them.
-
-    For a rotation-free transform, 1-D float64 arrays ``x`` (W,) and ``y`` (H,)
-    of the pixel centres (:func:`pixel_centres`) with ``dimension_names`` ("x",)
-    and ("y",) and CF attributes (:func:`cf_xy_attrs`); a rotated or sheared
-    transform gets no x/y arrays (1-D coordinates cannot describe it) but keeps
-    its ``GeoTransform``.  With a CRS, a scalar int64 array ``spatial_ref`` (value
-    0) holding the CF grid mapping (:func:`cf_grid_mapping`), named in the
-    ``grid_mapping`` and ``coordinates`` attributes of every array whose
-    dimensions are ("y", "x") (``coordinates`` is how xarray keeps a scalar
-    coordinate).  Then ``xr.open_zarr(store)`` has x/y coordinates and
-    ``.rio.crs`` / ``.rio.transform()`` of rioxarray give the input's CRS and
-    transform.  Call it before :func:`finalize_result_store` consolidates the
-    metadata; existing ``x``, ``y``, ``spatial_ref`` arrays are replaced.
-
-    Parameters
-    ----------
-    group : zarr.Group
-        A writable store, e.g. from :func:`create_result_store`.
-    geo : GeoInfo
-        The georeferencing of the (y, x) arrays; nothing is written without a
-        transform.
-    shape : tuple of int
-        (H, W) of the (y, x) arrays, pixels.
-
-    Returns
-    -------
-    list of str
-        Names of the arrays written.
-    """
-    if geo.transform is None:
-        return []
-    written = []
-    if is_rotation_free(geo.transform):
-        x, y = pixel_centres(geo.transform, shape)
-        for name, values, attrs in zip(("x", "y"), (x, y), cf_xy_attrs(geo.crs)):
-            array = group.create_array(name, shape=values.shape, dtype="float64", chunks=values.shape,
-                                       dimension_names=(name,), fill_value=float("nan"), overwrite=True)
-            array[:] = values
-            array.attrs.update(attrs)
-            written.append(name)
-    if geo.crs is not None:
-        ref = group.create_array("spatial_ref", shape=(), dtype="int64", dimension_names=(),
-                                 fill_value=0, overwrite=True)
-        ref[...] = 0
-        ref.attrs.update(jsonable(cf_grid_mapping(geo)))
-        written.append("spatial_ref")
-        for _, array in group.arrays():
-            if tuple(array.metadata.dimension_names or ()) == ("y", "x"):
-                array.attrs.update({"grid_mapping": "spatial_ref", "coordinates": "spatial_ref"})
-    return written
 
 
 def open_result_store(path: str | os.PathLike):

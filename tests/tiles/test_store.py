@@ -20,9 +20,8 @@ from rsmb.tiles._store import (
     finalize_result_store,
     open_result_store,
     write_array,
-    write_spatial_coords,
 )
-from rsmb.tiles import jsonable
+from rsmb.tiles import jsonable, write_spatial_coords
 
 H, W, D = 30, 44, 6
 TILE = 16
