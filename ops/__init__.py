@@ -23,7 +23,7 @@ from ._changes import (
     residual_median,
     score_histogram,
 )
-from ._errors import InputError, ParameterError, RSMBError, SolverError
+from ._errors import InputError, ParameterError, RSMBError, RunError, SolverError
 from ._forward import CameraPath, RenderResult, render
 from ._metrics import ConfusionCounts, confusion, trajectory_rmse
 from ._oracle import ExactRowSolution, huber_objective, optimal_chi, row_objective, solve_row_exact
@@ -92,4 +92,5 @@ __all__ = [
     "InputError",
     "ParameterError",
     "SolverError",
+    "RunError",
 ]

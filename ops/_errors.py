@@ -4,7 +4,7 @@ Callers catch :class:`RSMBError` for anything raised on purpose by the project,
 or the builtin base (``ValueError``, ``OSError``) they already handle.
 """
 
-__all__ = ["RSMBError", "InputError", "ParameterError", "SolverError"]
+__all__ = ["RSMBError", "InputError", "ParameterError", "SolverError", "RunError"]
 
 
 class RSMBError(Exception):
@@ -26,6 +26,11 @@ class ParameterError(RSMBError, ValueError):
 class SolverError(RSMBError, RuntimeError):
     """A numerical solver did not reach an optimal solution (the message gives
     the solver and its status)."""
+
+
+class RunError(RSMBError, RuntimeError):
+    """A run could not go on for a reason outside its inputs (every dask worker
+    gone, say); the message says what and for how long."""
 
 
 def one_line(text: object) -> str:

@@ -24,10 +24,12 @@ whatever the tile, so small tiles would pay them many times over.
    request.
 """
 
+import contextlib
 import dataclasses
 import hashlib
 import json
 import logging
+import os
 import time
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
@@ -337,6 +339,18 @@ def _change_masks(runner, run, plan, fused, hist, timings):
     return threshold, sum(n for n, _ in masked), int(keep_global.sum())
 
 
+class _Counted:
+    """A runner that counts the tasks it was given (runs may share a runner)."""
+
+    def __init__(self, runner):
+        self.runner, self.tasks = runner, 0
+
+    def map(self, label, func, argument_lists):
+        argument_lists = list(argument_lists)
+        self.tasks += len(argument_lists)
+        return self.runner.map(label, func, argument_lists)
+
+
 def _attributes(plan, result, scheduler):
     """Root attributes of the store (DESIGN.md's output store)."""
     axes, grid, camera = plan.params.axes, plan.grid, plan.camera
@@ -379,7 +393,7 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff):
 
 
 def detect(reference, distorted, output, *, config=None, scheduler="threads", workers=None, overwrite=False,
-           resume=False, geotiff=None):
+           resume=False, geotiff=None, runner=None, worker_timeout=60.0):
     """Register ``distorted`` against ``reference`` and write the change store.
 
     Parameters
@@ -401,6 +415,14 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
         tiles not yet registered run.
     geotiff : str or path-like, optional
         Directory where the masks are also written as GeoTIFFs.
+    runner : Runner, optional
+        An open runner to use instead of opening one for ``scheduler`` (runs
+        sharing a runner share its executor or cluster).
+    worker_timeout : float
+        Seconds a distributed run waits with no worker left before it fails.
+
+    Paths are made absolute before they reach a task: a dask worker may run
+    in another working directory.
 
     Returns
     -------
@@ -414,6 +436,8 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
     """
     t_start = time.perf_counter()
     config = config or DetectConfig()
+    reference, distorted, output = (os.path.abspath(p) for p in (reference, distorted, output))
+    geotiff = None if geotiff is None else os.path.abspath(geotiff)
     plan = _plan(reference, distorted, output, config)
     if resume:
         done = _finished(output, plan.key)
@@ -429,7 +453,9 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
         raise InputError(f"{output}: the interrupted run had other inputs or parameters; run without --resume")
     timings = {}
     try:
-        with open_runner(scheduler, workers=workers) as runner:
+        own = open_runner(scheduler, workers=workers, worker_timeout=worker_timeout) if runner is None else None
+        with own or contextlib.nullcontext(runner) as shared:
+            runner = _Counted(shared)
             shape, grid = plan.shape, plan.grid
             log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", plan.distorted.path, shape[0],
                      shape[1], len(grid), grid.tile, grid.halo, scheduler)
@@ -437,7 +463,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             _register_tiles(runner, group, run, plan, resume, timings)
             fused, hist, gains, agree, resolve = _fuse_paths(runner, group, run, plan, timings)
             threshold, changed, components = _change_masks(runner, run, plan, fused, hist, timings)
-            tasks_per_tile = runner.tasks_run / len(grid)
+            tasks_per_tile = runner.tasks / len(grid)
         timings["total_s"] = time.perf_counter() - t_start
         result = DetectResult(
             output=str(output), shape=list(shape), tiles=list(grid.grid_shape), tile_size=grid.tile,

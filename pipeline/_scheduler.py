@@ -25,7 +25,8 @@ import time
 import dask
 import dask.callbacks
 
-from rsmb.ops import InputError, ParameterError
+from rsmb.ops import InputError, ParameterError, RunError
+from rsmb.ops._errors import one_line
 
 __all__ = ["SCHEDULERS", "Runner", "check_scheduler", "configure_process", "open_runner"]
 
@@ -113,13 +114,34 @@ class _Progress:
 
 
 class Runner:
-    """Runs lists of independent tasks (function, args) on one scheduler."""
+    """Runs lists of independent tasks (function, args) on one scheduler.
 
-    def __init__(self, scheduler, client=None, workers=None):
+    One runner may serve several runs at once (``rsmb survey`` runs captures
+    concurrently on one runner): a local runner with a ``pool`` hands every
+    run's tasks to that one executor, a distributed runner to its one client.
+
+    Parameters
+    ----------
+    scheduler : str
+        A name of :data:`SCHEDULERS`, or "distributed" with ``client``.
+    client : distributed.Client, optional
+    workers : int, optional
+        Worker count of a local scheduler without a ``pool``.
+    pool : concurrent.futures.Executor, optional
+        The executor of a local scheduler, shared by every :meth:`map`.
+    progress : bool
+        Show a bar (or log lines) per :meth:`map`.
+    worker_timeout : float
+        Seconds a distributed run waits with no worker left before it gives up.
+    """
+
+    def __init__(self, scheduler, client=None, workers=None, pool=None, progress=True, worker_timeout=60.0):
         self.scheduler = scheduler
         self.client = client
         self.workers = workers
-        self.tasks_run = 0
+        self.pool = pool
+        self.progress = progress
+        self.worker_timeout = float(worker_timeout)
 
     def map(self, label, func, argument_lists):
         """``[func(*args) for args in argument_lists]`` on the scheduler; results
@@ -129,30 +151,57 @@ class Runner:
         argument_lists = list(argument_lists)
         if not argument_lists:
             return []
-        self.tasks_run += len(argument_lists)
-        progress = _Progress(label, len(argument_lists))
+        progress = _Progress(label, len(argument_lists)) if self.progress else None
         with _one_opencv_thread():
             if self.client is not None:
                 return self._map_distributed(progress, func, argument_lists)
             return self._map_local(progress, label, func, argument_lists)
 
     def _map_distributed(self, progress, func, argument_lists):
-        from distributed import as_completed
+        from distributed import wait
 
         n, owner = len(argument_lists), os.getpid()
         futures = [self.client.submit(_call, func, args, owner, pure=False, priority=n - i)
                    for i, args in enumerate(argument_lists)]
-        for _ in as_completed(futures):
-            progress.step()
+        pending, alone_since = set(futures), None
+        while pending:
+            try:
+                done = wait(pending, timeout=1.0, return_when="FIRST_COMPLETED").done
+            except TimeoutError:
+                done = set()
+            pending -= done
+            if progress is not None and done:
+                progress.step(len(done))
+            if not pending:
+                break
+            if self._workers_left():
+                alone_since = None
+            elif alone_since is None:
+                alone_since = time.monotonic()
+            elif time.monotonic() - alone_since > self.worker_timeout:
+                self.client.cancel(list(pending))
+                raise RunError(f"scheduler: no dask worker left for {self.worker_timeout:g} s "
+                               f"({len(pending)} of {n} tasks unfinished); see --worker-timeout")
         return self.client.gather(futures)
+
+    def _workers_left(self):
+        try:
+            return len(self.client.scheduler_info().get("workers", {})) > 0
+        except (OSError, TimeoutError):  # the scheduler itself is out of reach
+            return False
 
     def _map_local(self, progress, label, func, argument_lists):
         # dask's local schedulers start independent tasks in descending key order
         n, owner = len(argument_lists), os.getpid()
-        tasks = [dask.delayed(_call, pure=False)(func, args, owner, dask_key_name=f"{label}-{n - i:08d}")
+        token = f"{label}-{id(argument_lists):x}"  # runs sharing a pool keep their own keys
+        tasks = [dask.delayed(_call, pure=False)(func, args, owner, dask_key_name=f"{token}-{n - i:08d}")
                  for i, args in enumerate(argument_lists)]
-        with _DaskProgress(progress):
-            kw = {"num_workers": self.workers} if self.workers and self.scheduler != "synchronous" else {}
+        kw = {}
+        if self.pool is not None and self.scheduler != "synchronous":
+            kw["pool"] = self.pool
+        elif self.workers and self.scheduler != "synchronous":
+            kw["num_workers"] = self.workers
+        with _DaskProgress(progress) if progress is not None else contextlib.nullcontext():
             return list(dask.compute(*tasks, scheduler=self.scheduler, **kw))
 
 
@@ -176,7 +225,7 @@ class _DaskProgress(dask.callbacks.Callback):
 def check_scheduler(scheduler):
     """Raise :class:`ops.ParameterError` unless ``scheduler`` names a local
     scheduler, a ``tcp://host:port`` address or an existing scheduler file."""
-    if scheduler in SCHEDULERS:
+    if scheduler in SCHEDULERS or scheduler in JOBQUEUE:
         return
     if isinstance(scheduler, str) and scheduler.startswith("tcp://"):
         host, _, port = scheduler[len("tcp://"):].rpartition(":")
@@ -185,31 +234,73 @@ def check_scheduler(scheduler):
         raise ParameterError(f"scheduler: expected tcp://HOST:PORT, got {scheduler!r}")
     if isinstance(scheduler, str) and os.path.isfile(scheduler):
         return
-    raise ParameterError(f"scheduler: expected one of {', '.join(SCHEDULERS)}, a tcp:// address or a scheduler "
-                         f"file, got {scheduler!r}")
+    raise ParameterError(f"scheduler: expected one of {', '.join(SCHEDULERS + JOBQUEUE)}, a tcp:// address or "
+                         f"a scheduler file, got {scheduler!r}")
+
+
+JOBQUEUE = ("slurm", "pbs")
 
 
 @contextlib.contextmanager
-def open_runner(scheduler="threads", *, workers=None):
+def open_runner(scheduler="threads", *, workers=None, shared=False, progress=True, worker_timeout=60.0):
     """A :class:`Runner` for ``scheduler`` (see the module docstring).
+
+    ``shared`` gives a local scheduler one executor of ``workers`` (default: one
+    per core) for every run the runner serves at once.  ``slurm`` and ``pbs``
+    build a dask-jobqueue cluster from dask's own jobqueue configuration
+    (``jobqueue.slurm.*`` / ``jobqueue.pbs.*``), ``workers`` jobs of it.
 
     Raises
     ------
     ParameterError
         For an unknown scheduler name or a scheduler file that does not exist.
     InputError
-        When the dask.distributed scheduler cannot be reached.
+        When the dask.distributed scheduler cannot be reached, or a jobqueue
+        cluster cannot be made.
     """
     check_scheduler(scheduler)
     if scheduler in SCHEDULERS:
-        yield Runner(scheduler, workers=workers)
+        if not shared or scheduler == "synchronous":
+            yield Runner(scheduler, workers=workers, progress=progress)
+            return
+        from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+
+        executor = ThreadPoolExecutor if scheduler == "threads" else ProcessPoolExecutor
+        with executor(workers or os.cpu_count() or 1) as pool:
+            yield Runner(scheduler, workers=workers, pool=pool, progress=progress)
         return
     from distributed import Client
 
-    kw = {"address": scheduler} if scheduler.startswith("tcp://") else {"scheduler_file": scheduler}
+    with contextlib.ExitStack() as stack:
+        if scheduler in JOBQUEUE:
+            cluster = stack.enter_context(jobqueue_cluster(scheduler))
+            cluster.scale(jobs=workers or 1)
+            kw = {"address": cluster}
+        else:
+            kw = {"address": scheduler} if scheduler.startswith("tcp://") else {"scheduler_file": scheduler}
+        try:
+            client = stack.enter_context(Client(timeout="30s", **kw))
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise InputError(f"scheduler: cannot connect to {scheduler} ({one_line(exc)})") from None
+        yield Runner("distributed", client=client, progress=progress, worker_timeout=worker_timeout)
+
+
+def jobqueue_cluster(kind):
+    """A dask-jobqueue cluster (``slurm`` or ``pbs``) configured by dask's
+    jobqueue configuration alone; needs the ``cluster`` extra.
+
+    Raises
+    ------
+    InputError
+        Without dask-jobqueue, or when its configuration is incomplete.
+    """
     try:
-        client = Client(timeout="30s", **kw)
-    except (OSError, TimeoutError, ValueError) as exc:
-        raise InputError(f"scheduler: cannot connect to {scheduler} ({' '.join(str(exc).split())})") from None
-    with client:
-        yield Runner("distributed", client=client)
+        import dask_jobqueue
+    except ImportError:
+        raise InputError(f"scheduler: {kind} needs dask-jobqueue: pip install 'rsmb[cluster]'") from None
+    cls = {"slurm": dask_jobqueue.SLURMCluster, "pbs": dask_jobqueue.PBSCluster}[kind]
+    try:
+        return cls()
+    except (ValueError, TypeError, KeyError) as exc:
+        raise InputError(f"scheduler: {kind}: dask's jobqueue configuration ({kind}) is incomplete "
+                         f"({one_line(exc)}); see the README's section on SLURM") from None

@@ -89,9 +89,12 @@ def runtime_options(func):
     """Where and how a run executes (defined once for detect, demo and run)."""
     options = [
         click.option("--scheduler", default="threads", show_default=True, callback=_check_scheduler,
-                     help="threads, processes, synchronous, a tcp:// address or a scheduler file."),
+                     help="threads, processes, synchronous, a tcp:// address, a scheduler file, or slurm / "
+                          "pbs (dask-jobqueue from dask's configuration; the cluster extra)."),
         click.option("--workers", type=click.IntRange(min=1), default=None,
-                     help="Workers of a local scheduler (default: one per core)."),
+                     help="Workers of a local scheduler (default: one per core), jobs of slurm/pbs."),
+        click.option("--worker-timeout", type=Number(min=0, min_open=True), default=60.0, show_default=True,
+                     help="Seconds a cluster run waits with no dask worker left before it fails (exit 1)."),
     ]
     for option in reversed(options):
         func = option(func)
@@ -198,14 +201,15 @@ def _quiet_library_warnings():
               help="Also write the masks as GeoTIFFs into this directory (existing files need --overwrite).")
 @click.option("--json", "as_json", is_flag=True, help="Print the run summary as JSON.")
 def detect(reference, distorted, output, axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi,
-           threshold, min_area, focal, tile_size, overlap, scheduler, workers, resume, overwrite, geotiff, as_json):
+           threshold, min_area, focal, tile_size, overlap, scheduler, workers, worker_timeout, resume, overwrite,
+           geotiff, as_json):
     """Register DISTORTED against REFERENCE and write change masks to a zarr store."""
     from ._detect import detect as run
 
     config = build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold,
                           min_area, focal, tile_size, overlap)
     summary = run(reference, distorted, output, config=config, scheduler=scheduler, workers=workers,
-                  overwrite=overwrite, resume=resume, geotiff=geotiff)
+                  overwrite=overwrite, resume=resume, geotiff=geotiff, worker_timeout=worker_timeout)
     _print_summary(summary, as_json)
 
 
@@ -380,9 +384,9 @@ def main(argv=None):
     except (click.exceptions.Abort, KeyboardInterrupt):
         click.echo("rsmb: interrupted", err=True)
         return 1
-    except RSMBError as exc:
+    except RSMBError as exc:  # bad input or option: 2; a run that could not go on (solver, workers): 1
         click.echo(f"rsmb: error: {_one_line(exc)}", err=True)
-        return 2
+        return 2 if isinstance(exc, (ops.InputError, ops.ParameterError)) else 1
     except Exception as exc:  # noqa: BLE001 - the CLI's last resort
         log.debug("unexpected error", exc_info=True)
         click.echo(f"rsmb: unexpected error: {type(exc).__name__}: {_one_line(exc)} (rerun with -vv for the "

@@ -1,5 +1,11 @@
 """Fixtures: synthetic pairs on disk (array -> file -> store)."""
 
+import os
+import shutil
+import subprocess
+import sys
+import time
+
 import numpy as np
 import pytest
 
@@ -37,3 +43,36 @@ def read_store(path):
 
     group = zarr.open_group(str(path), mode="r")
     return {name: np.asarray(array[...]) for name, array in group.arrays()}, group.attrs.asdict()
+
+
+@pytest.fixture
+def dask_cluster(tmp_path_factory):
+    """A real dask scheduler and one worker process (no nanny: killing it kills
+    the worker) on 127.0.0.1, ports :0, the worker in a working directory of its
+    own.  Yields (scheduler file, worker process)."""
+    dask_cli = shutil.which("dask", path=os.path.dirname(sys.executable)) or shutil.which("dask")
+    if dask_cli is None:
+        pytest.skip("the dask command line is not installed")
+    home = tmp_path_factory.mktemp("cluster")
+    file = home / "scheduler.json"
+    procs = [subprocess.Popen([dask_cli, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                               "--scheduler-file", str(file)], cwd=home, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)]
+    deadline = time.time() + 60
+    while not file.exists() and time.time() < deadline:
+        time.sleep(0.1)
+    elsewhere = home / "worker-cwd"
+    elsewhere.mkdir()
+    procs.append(subprocess.Popen([dask_cli, "worker", "--scheduler-file", str(file), "--nworkers", "1",
+                                   "--nthreads", "2", "--no-dashboard", "--no-nanny", "--host", "127.0.0.1"],
+                                  cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+    try:
+        yield file, procs[1]
+    finally:
+        for proc in procs[::-1]:
+            proc.terminate()
+        for proc in procs:
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()

@@ -172,47 +172,6 @@ def test_local_schedulers_agree(tmp_path, small_pair_files, scheduler):
         np.testing.assert_array_equal(read_store(a)[0][name], read_store(b)[0][name])
 
 
-@pytest.fixture
-def dask_cluster(tmp_path):
-    """A real dask scheduler and one worker process on 127.0.0.1 (ports :0)."""
-    dask_cli = shutil.which("dask", path=os.path.dirname(sys.executable)) or shutil.which("dask")
-    if dask_cli is None:
-        pytest.skip("the dask command line is not installed")
-    file = tmp_path / "scheduler.json"
-    procs = [subprocess.Popen([dask_cli, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                               "--scheduler-file", str(file)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
-    deadline = time.time() + 60
-    while not file.exists() and time.time() < deadline:
-        time.sleep(0.1)
-    procs.append(subprocess.Popen([dask_cli, "worker", "--scheduler-file", str(file), "--nworkers", "1",
-                                   "--nthreads", "2", "--no-dashboard", "--host", "127.0.0.1"],
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-    try:
-        yield file
-    finally:
-        for proc in procs[::-1]:
-            proc.terminate()
-        for proc in procs:
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-
-
-def test_distributed_cluster_gives_the_same_result(tmp_path, small_pair_files, dask_cluster):
-    import json
-
-    _, ref, dist = small_pair_files
-    local, remote = tmp_path / "local.zarr", tmp_path / "remote.zarr"
-    detect(ref, dist, local, config=DetectConfig(tile=128))
-    address = json.loads(dask_cluster.read_text())["address"]
-    assert address.startswith("tcp://127.0.0.1:")
-    for scheduler, store in ((address, remote), (str(dask_cluster), tmp_path / "file.zarr")):
-        detect(ref, dist, store, config=DetectConfig(tile=128), scheduler=scheduler)
-        for name in ("change_mask", "registered", "trajectory"):
-            np.testing.assert_array_equal(read_store(local)[0][name], read_store(store)[0][name])
-
-
 def test_store_opens_with_coordinates_and_crs(tmp_path, geotiff_pair_files):
     import rasterio
     import rioxarray  # noqa: F401 - registers .rio

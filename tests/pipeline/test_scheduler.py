@@ -28,7 +28,6 @@ def test_results_in_order_with_two_threads():
 
     runner = Runner("threads", workers=2)
     assert runner.map("two", task, [(i,) for i in range(50)]) == [-i for i in range(50)]
-    assert runner.tasks_run == 50
 
 
 def _opencv_threads(_):
@@ -60,3 +59,19 @@ def test_worker_processes_get_the_process_settings():
     out = Runner("processes", workers=1).map("cv", _opencv_threads, [(0,), (1,)])
     assert all(pid != os.getpid() and n == 1 for pid, n in out)
     assert cv2.getNumThreads() == before
+
+
+def _negate(i):
+    return -i
+
+
+def test_one_shared_runner_serves_concurrent_runs():
+    from concurrent.futures import ThreadPoolExecutor
+
+    from rsmb.pipeline._scheduler import open_runner
+
+    with open_runner("threads", workers=2, shared=True, progress=False) as runner:
+        with ThreadPoolExecutor(3) as driver:
+            runs = [driver.submit(runner.map, "run", _negate, [(i + 100 * r,) for i in range(30)]) for r in range(3)]
+            results = [f.result() for f in runs]
+    assert results == [[-(i + 100 * r) for i in range(30)] for r in range(3)]
