@@ -1,6 +1,16 @@
-"""Geometry and storage: ingest of GeoTIFF/PNG/NPY/zarr, tile grids, result
-stores and the seam merge of per-tile labels."""
+"""Geometry and storage: ingest of GeoTIFF/PNG/NPY/zarr, georeferenced pairing of a
+capture with a reference set, tile grids, result stores and the seam merge of
+per-tile labels."""
 
+from ._georef import (
+    Coverage,
+    Pairing,
+    RasterGrid,
+    is_georeferenced,
+    pair_images,
+    reference_coverage,
+    reference_window,
+)
 from ._grid import Tile, TileGrid
 from ._ingest import WindowStats, check_stats, ingest_core, read_padded
 from ._io import (
@@ -27,6 +37,13 @@ from ._store import (
 )
 
 __all__ = [
+    "RasterGrid",
+    "Coverage",
+    "Pairing",
+    "is_georeferenced",
+    "pair_images",
+    "reference_coverage",
+    "reference_window",
     "Tile",
     "TileGrid",
     "WindowStats",

@@ -738,20 +738,30 @@ def probe_image(path: str | os.PathLike) -> ImageInfo:
         Missing, unreadable, unsupported or empty input (one line naming the file).
     """
     name = os.fspath(path)
+    shape, geo = _probe_header(name)
+    if _kind(name) == "zarr":
+        sha = _sha256_array(_open_zarr_array(name))
+    else:
+        sha = _sha256_file(name)
+    return ImageInfo(name, shape, geo, sha)
+
+
+def _probe_header(name: str) -> tuple[tuple[int, int], GeoInfo]:
+    """(H, W) and georeferencing of an image from its header only: no pixel is
+    read and no checksum computed (cheap enough to call per tile on a large
+    reference mosaic)."""
     kind = _kind(name)
     if kind == "rasterio":
         with _open_rasterio(name) as ds:
             shape, geo = (ds.height, ds.width), _rasterio_geo(ds)
-        sha = _sha256_file(name)
     elif kind == "numpy":
         array = _load_npy(name)
         _check_2d_nonempty(array.shape, name=name)
-        shape, geo, sha = array.shape[:2], GeoInfo(), _sha256_file(name)
+        shape, geo = array.shape[:2], GeoInfo()
     else:
         zarray = _open_zarr_array(name)
         _check_2d_nonempty(zarray.shape, name=name)
         shape, geo = zarray.shape[:2], _zarr_geo(zarray, name=name)
-        sha = _sha256_array(zarray)
     if 0 in shape:
         raise InputError(f"{name}: is empty (shape {tuple(shape)})")
-    return ImageInfo(name, (int(shape[0]), int(shape[1])), geo, sha)
+    return (int(shape[0]), int(shape[1])), geo
