@@ -1,6 +1,6 @@
 """Geometry and storage: ingest of GeoTIFF/PNG/NPY/zarr, georeferenced pairing of a
-capture with a reference set, tile grids, result stores and the seam merge of
-per-tile labels."""
+capture with a reference set, tile grids, result stores, the seam merge of
+per-tile labels and the GIS products (COGs, change polygons in a GeoPackage)."""
 
 from ._georef import (
     Coverage,
@@ -24,6 +24,7 @@ from ._io import (
     read_window,
     write_geotiff,
 )
+from ._products import ChangePolygon, change_polygons, write_changes_gpkg, write_cog
 from ._stitch import TileLabels, merge_tile_labels
 from ._store import (
     ArraySpec,
@@ -59,6 +60,10 @@ __all__ = [
     "read_window",
     "check_same_shape",
     "write_geotiff",
+    "write_cog",
+    "ChangePolygon",
+    "change_polygons",
+    "write_changes_gpkg",
     "TileLabels",
     "merge_tile_labels",
     "ArraySpec",

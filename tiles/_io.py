@@ -635,6 +635,7 @@ def write_geotiff(
     geo: GeoInfo,
     *,
     nodata: float | None = None,
+    description: str | None = None,
 ) -> Path:
     """Write a single-band GeoTIFF (deflate compressed, 256 x 256 tiles).
 
@@ -650,6 +651,8 @@ def write_geotiff(
         ``geo.nodata`` is not used: pass ``nodata`` explicitly.
     nodata : float, optional
         Nodata value to record in the file.
+    description : str, optional
+        Band description (what the values are), shown by GIS tools.
 
     Returns
     -------
@@ -701,6 +704,8 @@ def write_geotiff(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
         with rasterio.open(out, "w", **profile) as ds:
+            if description is not None:
+                ds.set_band_description(1, description)
             # strips of one block row: a zarr array is never read whole
             for r0 in range(0, array.shape[0], _GEOTIFF_BLOCK):
                 strip = np.asarray(array[r0:r0 + _GEOTIFF_BLOCK]).astype(dtype, copy=False)
