@@ -1,6 +1,16 @@
-"""Geometry and storage: ingest of GeoTIFF/PNG/NPY/zarr, tile grids, result
-stores and the seam merge of per-tile labels."""
+"""Geometry and storage: ingest of GeoTIFF/PNG/NPY/zarr, georeferenced pairing of a
+capture with a reference set, tile grids, result stores, the seam merge of
+per-tile labels and the GIS products (COGs, change polygons in a GeoPackage)."""
 
+from ._georef import (
+    Coverage,
+    Pairing,
+    RasterGrid,
+    is_georeferenced,
+    pair_images,
+    reference_coverage,
+    reference_window,
+)
 from ._grid import Tile, TileGrid
 from ._ingest import WindowStats, check_stats, ingest_core, read_padded
 from ._geo import GeoInfo, write_spatial_coords
@@ -15,6 +25,7 @@ from ._io import (
 )
 from ._json import jsonable
 from ._luminance import as_float01
+from ._products import ChangePolygon, change_polygons, write_changes_gpkg, write_cog
 from ._stitch import TileLabels, merge_tile_labels
 from ._store import (
     ArraySpec,
@@ -30,6 +41,13 @@ from ._store import (
 )
 
 __all__ = [
+    "RasterGrid",
+    "Coverage",
+    "Pairing",
+    "is_georeferenced",
+    "pair_images",
+    "reference_coverage",
+    "reference_window",
     "Tile",
     "TileGrid",
     "WindowStats",
@@ -45,6 +63,10 @@ __all__ = [
     "read_window",
     "check_same_shape",
     "write_geotiff",
+    "write_cog",
+    "ChangePolygon",
+    "change_polygons",
+    "write_changes_gpkg",
     "TileLabels",
     "merge_tile_labels",
     "ArraySpec",

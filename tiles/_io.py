@@ -157,10 +157,28 @@ def probe_image(path: str | os.PathLike) -> ImageInfo:
     """
     name = os.fspath(path)
     source = open_source(name)
+    shape, geo = _header(source)
+    return ImageInfo(name, shape, geo, source.sha256())
+
+
+def probe_header(path: str | os.PathLike) -> tuple[tuple[int, int], GeoInfo]:
+    """(H, W) and georeferencing of an image from its header only: no pixel is
+    read and no checksum computed (cheap enough for every file of a large
+    reference mosaic).
+
+    Raises
+    ------
+    InputError
+        Missing, unreadable, unsupported or empty input (one line naming the file).
+    """
+    return _header(open_source(os.fspath(path)))
+
+
+def _header(source):
     shape, geo = source.probe()
     if 0 in shape:
-        raise InputError(f"{name}: is empty (shape {tuple(shape)})")
-    return ImageInfo(name, (int(shape[0]), int(shape[1])), geo, source.sha256())
+        raise InputError(f"{source.path}: is empty (shape {tuple(shape)})")
+    return (int(shape[0]), int(shape[1])), geo
 
 
 def _check_content(data: np.ndarray, valid: np.ndarray, *, name: str) -> None:
@@ -197,6 +215,7 @@ def write_geotiff(
     geo: GeoInfo,
     *,
     nodata: float | None = None,
+    description: str | None = None,
 ) -> Path:
     """Write a single-band GeoTIFF (deflate compressed, 256 x 256 tiles).
 
@@ -212,6 +231,8 @@ def write_geotiff(
         ``geo.nodata`` is not used: pass ``nodata`` explicitly.
     nodata : float, optional
         Nodata value to record in the file.
+    description : str, optional
+        Band description (what the values are), shown by GIS tools.
 
     Returns
     -------
@@ -263,6 +284,8 @@ def write_geotiff(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
         with rasterio.open(out, "w", **profile) as ds:
+            if description is not None:
+                ds.set_band_description(1, description)
             # strips of one block row: a zarr array is never read whole
             for r0 in range(0, array.shape[0], _GEOTIFF_BLOCK):
                 strip = np.asarray(array[r0:r0 + _GEOTIFF_BLOCK]).astype(dtype, copy=False)

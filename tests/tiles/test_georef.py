@@ -1,0 +1,284 @@
+"""Tests of tiles._georef: pairing rule, coverage, the reference resampled onto the
+capture grid (larger reference, split reference, other pixel size, other CRS,
+partial and no overlap)."""
+
+import numpy as np
+import pytest
+import rasterio
+from rasterio.crs import CRS
+from rasterio.enums import Resampling
+from rasterio.transform import Affine
+from rasterio.warp import calculate_default_transform, reproject
+
+from rsmb import tiles
+from rsmb.ops import InputError, ParameterError, aerial_scene
+from rsmb.tiles import _georef
+from rsmb.tiles._georef import (
+    RasterGrid,
+    pair_images,
+    reference_coverage,
+    reference_window,
+)
+
+UTM = "EPSG:32633"  # lat ~45 N at y = 5 000 000
+X0, Y0 = 500000.0, 5000000.0
+REF_SHAPE = (400, 400)
+CAP_SHAPE = (120, 160)
+CAP_OFFSET = (70, 90)  # capture pixel (0, 0) in the 1 m reference grid (row, col)
+
+
+def _write(path, array, crs, transform, *, nodata=None):
+    array = np.asarray(array)
+    bands = array[None] if array.ndim == 2 else np.moveaxis(array, -1, 0)
+    profile = dict(driver="GTiff", height=bands.shape[1], width=bands.shape[2], count=bands.shape[0],
+                   dtype=bands.dtype.name, crs=None if crs is None else CRS.from_user_input(crs),
+                   transform=transform, nodata=nodata)
+    with rasterio.open(path, "w", **profile) as ds:
+        ds.write(bands)
+    return str(path)
+
+
+def _utm(col, row, pixel=1.0):
+    """Transform of a grid whose pixel (0, 0) is at (row, col) of the 1 m reference grid."""
+    return Affine(pixel, 0.0, X0 + col, 0.0, -pixel, Y0 - row)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return aerial_scene(REF_SHAPE, seed=3)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory, scene):
+    """The 1 m reference, the same split in two files, and a capture inside it."""
+    d = tmp_path_factory.mktemp("georef")
+    ref = _write(d / "ref.tif", scene, UTM, _utm(0, 0))
+    left = _write(d / "left.tif", scene[:, :200], UTM, _utm(0, 0))
+    right = _write(d / "right.tif", scene[:, 200:], UTM, _utm(200, 0))
+    r, c = CAP_OFFSET
+    cap = _write(d / "cap.tif", scene[r:r + CAP_SHAPE[0], c:c + CAP_SHAPE[1]], UTM, _utm(c, r))
+    return {"dir": d, "ref": ref, "left": left, "right": right, "cap": cap}
+
+
+@pytest.fixture(scope="module")
+def grid(files):
+    return RasterGrid.from_info(tiles.probe_image(files["cap"]))
+
+
+def _window(grid, margin=0):
+    h, w = grid.shape
+    return slice(-margin, h + margin), slice(-margin, w + margin)
+
+
+def _crop(scene, margin=0):
+    r, c = CAP_OFFSET
+    return scene[r - margin:r + CAP_SHAPE[0] + margin, c - margin:c + CAP_SHAPE[1] + margin]
+
+
+def _corr(a, b):
+    ok = np.isfinite(a) & np.isfinite(b)
+    return float(np.corrcoef(a[ok], b[ok])[0, 1])
+
+
+# ------------------------------------------------------------------ the grid
+
+
+def test_grid_from_info_and_path(files, grid):
+    assert grid.shape == CAP_SHAPE
+    assert grid.transform == tuple(_utm(90, 70))[:6]
+    assert RasterGrid.from_path(files["cap"]) == grid
+
+
+def test_grid_refuses_ungeoreferenced(tmp_path):
+    path = _write(tmp_path / "plain.tif", np.zeros((4, 4), np.float32), None, Affine.identity())
+    with pytest.raises(InputError, match="plain.tif: is not georeferenced"):
+        RasterGrid.from_path(path)
+
+
+# ---------------------------------------------------------- reference window
+
+
+def test_larger_reference_is_the_crop_at_the_offset(files, grid, scene):
+    out = reference_window(files["ref"], grid, *_window(grid))
+    assert out.dtype == np.float32 and out.shape == CAP_SHAPE
+    np.testing.assert_array_equal(out, _crop(scene))
+
+
+def test_window_beyond_the_capture_reads_the_reference_margin(files, grid, scene):
+    out = reference_window([files["ref"]], grid, *_window(grid, margin=12))
+    np.testing.assert_array_equal(out, _crop(scene, margin=12))
+    # beyond the reference itself: NaN
+    beyond = reference_window(files["ref"], grid, slice(-100, -71), slice(0, 10))
+    assert np.isnan(beyond).all()
+
+
+def test_reference_split_over_two_files_equals_the_unsplit(files, grid):
+    whole = reference_window(files["ref"], grid, *_window(grid, margin=5))
+    split = reference_window([files["left"], files["right"]], grid, *_window(grid, margin=5))
+    np.testing.assert_array_equal(split, whole)
+
+
+def test_first_file_with_valid_data_wins(files, grid, scene):
+    holed = scene.copy()
+    holed[:, 150:] = -1.0  # nodata in the right part of the first file
+    first = _write(files["dir"] / "holed.tif", holed, UTM, _utm(0, 0), nodata=-1.0)
+    other = _write(files["dir"] / "other.tif", 1.0 - scene, UTM, _utm(0, 0))
+    out = reference_window([first, other], grid, *_window(grid))
+    cut = 150 - CAP_OFFSET[1]
+    np.testing.assert_array_equal(out[:, :cut], _crop(scene)[:, :cut])
+    np.testing.assert_array_equal(out[:, cut:], 1.0 - _crop(scene)[:, cut:])
+
+
+def test_luminance_policy_is_the_one_of_read_window(files, grid, scene):
+    rng = np.random.default_rng(0)
+    rgba = rng.integers(1, 256, size=REF_SHAPE + (4,), dtype=np.uint8)
+    rgba[:40, :, 3] = 0  # transparent rows
+    path = _write(files["dir"] / "rgba.tif", rgba, UTM, _utm(0, 0))
+    out = reference_window(path, grid, slice(-100, 20), slice(0, 50))
+    # window rows -100..20 of the capture are rows -30..90 of the file
+    data, valid = tiles.read_window(path, slice(0, 90), slice(CAP_OFFSET[1], CAP_OFFSET[1] + 50))
+    assert not valid[:40].any() and valid[40:].all()
+    assert np.isnan(out[:70]).all()  # 30 rows beyond the file, 40 transparent rows
+    np.testing.assert_array_equal(out[70:], data[40:])
+
+
+def test_only_the_window_is_read(files, grid, monkeypatch):
+    seen = []
+    real = _georef.read_window
+
+    def spy(path, rows, cols):
+        seen.append((rows.stop - rows.start) * (cols.stop - cols.start))
+        return real(path, rows, cols)
+
+    monkeypatch.setattr(_georef, "read_window", spy)
+    reference_window(files["ref"], grid, slice(10, 42), slice(20, 52))
+    pad = 2 * (1 + _georef._KERNEL_PAD) + 1
+    assert seen and max(seen) <= (32 + 2 * pad) ** 2
+
+
+def test_coarser_reference_matches_a_whole_reproject(files, grid, scene):
+    coarse = scene.reshape(200, 2, 200, 2).mean(axis=(1, 3)).astype(np.float32)
+    path = _write(files["dir"] / "coarse.tif", coarse, UTM, _utm(0, 0, pixel=2.0))
+    out = reference_window(path, grid, *_window(grid, margin=8))
+    expected = np.full(out.shape, np.nan, np.float32)
+    reproject(coarse, expected, src_transform=_utm(0, 0, 2.0), src_crs=UTM, src_nodata=np.nan,
+              dst_transform=grid.window_affine(*_window(grid, margin=8)), dst_crs=UTM,
+              dst_nodata=np.nan, resampling=Resampling.bilinear)
+    np.testing.assert_allclose(out, expected, atol=1e-5)
+    assert _corr(out, _crop(scene, margin=8)) > 0.95
+
+
+@pytest.mark.parametrize("crs, res", [("EPSG:3857", 0.7), ("EPSG:4326", 6e-6)])
+def test_reference_in_another_crs(files, grid, scene, crs, res):
+    transform, width, height = calculate_default_transform(
+        UTM, crs, REF_SHAPE[1], REF_SHAPE[0], *rasterio.transform.array_bounds(*REF_SHAPE, _utm(0, 0)),
+        resolution=res)
+    warped = np.full((height, width), np.nan, np.float32)
+    reproject(scene, warped, src_transform=_utm(0, 0), src_crs=UTM, dst_transform=transform,
+              dst_crs=crs, dst_nodata=np.nan, resampling=Resampling.bilinear)
+    warped = np.where(np.isnan(warped), -1.0, warped).astype(np.float32)
+    path = _write(files["dir"] / f"ref_{crs.replace(':', '')}.tif", warped, crs, transform, nodata=-1.0)
+    out = reference_window(path, grid, *_window(grid))
+    assert np.isfinite(out).all()
+    assert _corr(out, _crop(scene)) > 0.98
+    assert float(np.abs(out - _crop(scene)).mean()) < 0.03
+
+
+def test_bad_windows_are_refused(files, grid):
+    with pytest.raises(ParameterError, match="rows"):
+        reference_window(files["ref"], grid, slice(0, 10, 2), slice(0, 10))
+    with pytest.raises(ParameterError, match="cols"):
+        reference_window(files["ref"], grid, slice(0, 10), slice(None, 10))
+
+
+# ---------------------------------------------------------------- coverage
+
+
+def test_partial_overlap_nan_outside_and_fraction(files, scene):
+    # capture whose columns 0..99 lie over reference columns 300..399, the rest beyond
+    d = files["dir"]
+    cap = _write(d / "edge.tif", np.zeros(CAP_SHAPE, np.float32), UTM, _utm(300, 70))
+    pairing = pair_images([files["left"], files["right"]], cap)
+    assert pairing.mode == "georeferenced"
+    assert pairing.coverage.fraction == pytest.approx(100 / 160)
+    assert pairing.coverage.files == (files["right"],)
+    assert pairing.coverage.file_fractions == (0.0, pytest.approx(100 / 160))
+    out = pairing.reference_window(slice(0, 120), slice(0, 160))
+    np.testing.assert_array_equal(out[:, :100], scene[70:190, 300:400])
+    assert np.isnan(out[:, 100:]).all()
+
+
+def test_coverage_in_another_crs(files, grid):
+    # a geographic reference whose east edge runs through the capture's middle
+    from rasterio.warp import transform_bounds
+
+    west, south, east, north = transform_bounds(UTM, "EPSG:4326", *grid_bounds(grid))
+    middle = (west + east) / 2
+    step = 1e-5
+    shape = (int((north - south) / step) + 20, int((middle - west) / step) + 10)
+    transform = Affine(step, 0.0, west - 10 * step, 0.0, -step, north + 10 * step)
+    path = _write(files["dir"] / "half4326.tif", np.ones(shape, np.float32), "EPSG:4326", transform)
+    coverage = reference_coverage([files["ref"], path], grid)
+    assert coverage.fraction == 1.0 and coverage.files == (files["ref"], path)
+    assert coverage.file_fractions[1] == pytest.approx(0.5, abs=0.02)
+
+
+def grid_bounds(grid):
+    left, top = grid.transform[2], grid.transform[5]
+    return left, top + grid.transform[4] * grid.shape[0], left + grid.transform[0] * grid.shape[1], top
+
+
+def test_no_overlap_names_both_files(files):
+    cap = _write(files["dir"] / "far.tif", np.zeros(CAP_SHAPE, np.float32), UTM, _utm(5000, 0))
+    with pytest.raises(InputError, match=r"far\.tif: footprint does not overlap the reference .*ref\.tif"):
+        pair_images(files["ref"], cap)
+
+
+def test_same_size_pair_5_km_apart_is_refused(files, scene):
+    d = files["dir"]
+    a = _write(d / "a.tif", scene[:120, :160], UTM, _utm(0, 0))
+    b = _write(d / "b.tif", scene[:120, :160], UTM, _utm(0, -5000))
+    with pytest.raises(InputError, match=r"b\.tif: footprint does not overlap the reference .*a\.tif"):
+        pair_images(a, b)
+
+
+# ---------------------------------------------------------------- pairing
+
+
+def test_georeferenced_pairing(files, grid):
+    pairing = pair_images([files["left"], files["right"]], files["cap"])
+    assert pairing.mode == "georeferenced" and pairing.grid == grid
+    assert pairing.shape == CAP_SHAPE and pairing.coverage.fraction == 1.0
+    assert [g.path for g in pairing.reference_grids] == [files["left"], files["right"]]
+    np.testing.assert_array_equal(pairing.reference_window(slice(0, 120), slice(0, 160)),
+                                  reference_window(files["ref"], grid, slice(0, 120), slice(0, 160)))
+
+
+def test_pixel_pairing_without_georeferencing(tmp_path, scene):
+    a = str(tmp_path / "a.npy")
+    b = str(tmp_path / "b.npy")
+    np.save(a, scene[:50, :60])
+    np.save(b, scene[:50, :60])
+    pairing = pair_images(a, b)
+    assert pairing.mode == "pixel" and "neither" in pairing.reason
+    np.testing.assert_array_equal(pairing.reference_window(slice(-2, 52), slice(0, 60))[2:52],
+                                  scene[:50, :60])
+    np.save(b, scene[:50, :61])
+    with pytest.raises(InputError, match=r"b\.npy: size \(50, 61\) differs from the reference .*a\.npy"):
+        pair_images(a, b)
+    with pytest.raises(InputError, match="2 reference files given"):
+        pair_images([a, a], b)
+
+
+def test_mixed_pairing_is_pixel_for_pixel(files, tmp_path, scene):
+    plain = str(tmp_path / "plain.npy")
+    np.save(plain, _crop(scene))
+    pairing = pair_images(plain, files["cap"])
+    assert pairing.mode == "pixel" and "plain.npy is not georeferenced" in pairing.reason
+    with pytest.raises(InputError, match="give images of the same size"):
+        pair_images(files["ref"], plain)
+
+
+def test_no_reference_is_a_parameter_error(files):
+    with pytest.raises(ParameterError, match="references"):
+        pair_images([], files["cap"])

@@ -1,0 +1,566 @@
+"""Georeferenced pairs: which reference pixels a capture is compared with.
+
+DESIGN.md, "Georeferenced pairs": when the capture and every reference file are
+georeferenced, georeferencing decides what is compared with what.  The reference
+set may be larger than the capture, split over several files, or on another grid
+(pixel size, CRS); :func:`reference_window` resamples it onto the capture's grid one
+window at a time, reading from each file only the pixels under that window, so
+memory is bounded by the window, never by the reference.
+
+Pairing rule (:func:`pair_images`, called once before any work):
+
+* capture and every reference georeferenced (a CRS *and* a geotransform): the pair
+  is georeferenced.  The reference files are a mosaic (the first file with valid
+  data at a pixel wins, in the order given); the footprints must overlap
+  (:func:`reference_coverage`), otherwise :class:`InputError`.  Partial overlap is
+  allowed: the uncovered part of the capture has no reference data (NaN).
+* neither georeferenced: pixel for pixel, one reference file of the capture's size
+  (the rule of ungeoreferenced pairs, unchanged).
+* exactly one side georeferenced: pixel for pixel as well, with the same size
+  rule; the georeferencing present is ignored for the pairing (it is still
+  recorded with the outputs).  Without georeferencing on one side nothing says
+  where that image lies, so the only defensible pairing is the one the user made
+  by cutting the images to the same size (a PNG reference cut by hand for a
+  GeoTIFF capture keeps working); guessing a placement would produce silently
+  wrong masks.
+
+A file with a geotransform but no CRS (or a CRS but no geotransform) counts as not
+georeferenced: two such files cannot be placed relative to each other.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from functools import lru_cache
+from typing import Sequence, Union
+
+import numpy as np
+
+from rsmb.ops._errors import InputError, ParameterError
+
+from ._ingest import _read_clipped
+from ._geo import GeoInfo
+from ._io import ImageInfo, probe_header, read_window
+
+__all__ = [
+    "RasterGrid",
+    "Coverage",
+    "Pairing",
+    "is_georeferenced",
+    "reference_coverage",
+    "reference_window",
+    "pair_images",
+]
+
+#: Points per edge when a footprint is carried into another CRS (edges curve).
+_DENSIFY = 21
+#: At most this many coverage samples along each side of the capture.
+_COVERAGE_SAMPLES = 1024
+#: Two grids whose origins differ by a whole number of pixels within this many
+#: pixels (and share CRS, pixel size and rotation) are the same grid.
+_ALIGN_TOL = 1e-6
+#: Extra reference pixels read around a window for the bilinear kernel.
+_KERNEL_PAD = 2
+
+PathOrGrid = Union[str, os.PathLike, "RasterGrid"]
+
+
+# ------------------------------------------------------------------------- grids
+
+
+def is_georeferenced(geo: GeoInfo) -> bool:
+    """True when ``geo`` has both a CRS and a geotransform."""
+    return geo.crs is not None and geo.transform is not None
+
+
+@lru_cache(maxsize=64)
+def _crs(wkt: str):
+    from rasterio.crs import CRS
+
+    return CRS.from_wkt(wkt)
+
+
+@dataclass(frozen=True)
+class RasterGrid:
+    """The pixel grid of a georeferenced raster: where each pixel lies.
+
+    Attributes
+    ----------
+    path : str
+        The file the grid belongs to (named in error messages).
+    crs : str
+        Coordinate reference system, WKT.
+    transform : tuple of 6 float
+        Affine ``(a, b, c, d, e, f)`` in rasterio's order: ``x = a col + b row + c``,
+        ``y = d col + e row + f`` for pixel-corner coordinates (col, row); x, y in
+        CRS units.
+    shape : tuple of int
+        (H, W) in pixels.
+    """
+
+    path: str
+    crs: str
+    transform: tuple[float, ...]
+    shape: tuple[int, int]
+
+    def __post_init__(self) -> None:
+        coeffs = tuple(float(v) for v in self.transform)
+        if len(coeffs) != 6:
+            raise ParameterError(f"transform: expected 6 affine coefficients, got {len(coeffs)}")
+        if coeffs[0] * coeffs[4] - coeffs[1] * coeffs[3] == 0.0:
+            raise InputError(f"{self.path}: degenerate geotransform {coeffs} (zero pixel area)")
+        object.__setattr__(self, "transform", coeffs)
+        object.__setattr__(self, "shape", (int(self.shape[0]), int(self.shape[1])))
+
+    @classmethod
+    def from_info(cls, info: ImageInfo) -> RasterGrid:
+        """The grid of a probed image (:func:`rsmb.tiles.probe_image`).
+
+        Raises
+        ------
+        InputError
+            If the image has no CRS or no geotransform.
+        """
+        return cls._from_geo(info.path, tuple(info.shape), info.geo)
+
+    @classmethod
+    def from_path(cls, path: str | os.PathLike) -> RasterGrid:
+        """The grid of an image file, from its header only (no pixel read, no checksum).
+
+        Raises
+        ------
+        InputError
+            Unreadable file, or no CRS or no geotransform.
+        """
+        name = os.fspath(path)
+        shape, geo = probe_header(name)
+        return cls._from_geo(name, shape, geo)
+
+    @classmethod
+    def _from_geo(cls, path: str, shape: tuple, geo: GeoInfo) -> RasterGrid:
+        if not is_georeferenced(geo):
+            missing = "CRS" if geo.crs is None else "geotransform"
+            raise InputError(f"{path}: is not georeferenced (no {missing})")
+        return cls(path, geo.crs, geo.transform, shape)
+
+    @property
+    def affine(self):
+        """The transform as a rasterio ``Affine``."""
+        from rasterio.transform import Affine
+
+        return Affine(*self.transform)
+
+    def window_affine(self, rows: slice, cols: slice):
+        """``Affine`` of the window ``rows, cols`` (its pixel (0, 0) is (rows.start, cols.start))."""
+        from rasterio.transform import Affine
+
+        return self.affine @ Affine.translation(cols.start, rows.start)
+
+    def footprint(self, crs: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Outline of the raster, densified, in ``crs`` (default: its own).
+
+        Returns
+        -------
+        xs, ys : ndarray, shape (4 * 21 + 1,), float64
+            A closed ring of the pixel-corner outline in CRS units.
+        """
+        return _ring(self.affine, self.shape, self.crs, crs)
+
+
+def _ring(affine, shape, src_crs: str, dst_crs: str | None):
+    """Closed, densified outline of a (H, W) pixel rectangle, in ``dst_crs``."""
+    h, w = shape
+    t = np.linspace(0.0, 1.0, _DENSIFY, endpoint=False)
+    cols = np.concatenate([t * w, np.full_like(t, w), (1 - t) * w, np.zeros_like(t), [0.0]])
+    rows = np.concatenate([np.zeros_like(t), t * h, np.full_like(t, h), (1 - t) * h, [0.0]])
+    xs, ys = affine @ (cols, rows)
+    return _transform_points(src_crs, dst_crs, np.asarray(xs), np.asarray(ys))
+
+
+def _transform_points(src_crs: str, dst_crs: str | None, xs: np.ndarray, ys: np.ndarray):
+    if dst_crs is None or _crs(src_crs) == _crs(dst_crs):
+        return xs, ys
+    from rasterio.warp import transform
+
+    xt, yt = transform(_crs(src_crs), _crs(dst_crs), xs.tolist(), ys.tolist())
+    return np.asarray(xt, dtype=np.float64), np.asarray(yt, dtype=np.float64)
+
+
+def _as_grids(references: PathOrGrid | Sequence[PathOrGrid]) -> list[RasterGrid]:
+    if isinstance(references, (str, os.PathLike, RasterGrid)):
+        references = [references]
+    grids = [r if isinstance(r, RasterGrid) else RasterGrid.from_path(r) for r in references]
+    if not grids:
+        raise ParameterError("references: expected at least one reference file, got none")
+    return grids
+
+
+# ---------------------------------------------------------------------- coverage
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """How much of a capture the reference set covers (by footprints, not pixels).
+
+    Attributes
+    ----------
+    fraction : float
+        Fraction in [0, 1] of the capture's footprint inside the union of the
+        reference footprints, measured on the capture's pixel centres (on a regular
+        subsample of at most 1024 x 1024 of them for larger captures).
+    files : tuple of str
+        The reference files whose footprint overlaps the capture's, in the order
+        given.
+    file_fractions : tuple of float
+        For every reference given (same order), the fraction of the capture it
+        covers on its own.
+    """
+
+    fraction: float
+    files: tuple[str, ...]
+    file_fractions: tuple[float, ...]
+
+
+def reference_coverage(references: PathOrGrid | Sequence[PathOrGrid], capture: RasterGrid) -> Coverage:
+    """Fraction of the capture covered by the reference set, and which files cover it.
+
+    Each reference's outline (its full pixel rectangle: nodata inside it counts as
+    covered) is carried into the capture's CRS with densified edges and rasterised
+    onto the capture's pixel centres.
+
+    Parameters
+    ----------
+    references : path, RasterGrid or sequence of them
+        The reference set (paths are read for their header only).
+    capture : RasterGrid
+
+    Returns
+    -------
+    Coverage
+    """
+    from rasterio.features import rasterize
+    from rasterio.transform import Affine
+
+    grids = _as_grids(references)
+    h, w = capture.shape
+    step = max(1, math.ceil(max(h, w) / _COVERAGE_SAMPLES))
+    nh, nw = math.ceil(h / step), math.ceil(w / step)
+    sample_affine = capture.affine @ Affine.scale(w / nw, h / nh)
+    union = np.zeros((nh, nw), dtype=bool)
+    fractions = []
+    for grid in grids:
+        xs, ys = grid.footprint(capture.crs)
+        ok = np.isfinite(xs) & np.isfinite(ys)
+        covered = np.zeros((nh, nw), dtype=bool)
+        if ok.sum() >= 4:
+            ring = list(zip(xs[ok].tolist(), ys[ok].tolist()))
+            shape = {"type": "Polygon", "coordinates": [ring]}
+            covered = rasterize([(shape, 1)], out_shape=(nh, nw), transform=sample_affine,
+                                fill=0, dtype="uint8").astype(bool)
+        union |= covered
+        fractions.append(float(covered.mean()))
+    files = tuple(g.path for g, f in zip(grids, fractions) if f > 0.0)
+    return Coverage(float(union.mean()), files, tuple(fractions))
+
+
+# ------------------------------------------------------------------ the window
+
+
+def reference_window(
+    references: PathOrGrid | Sequence[PathOrGrid],
+    capture: RasterGrid,
+    rows: slice,
+    cols: slice,
+) -> np.ndarray:
+    """The reference set's luminance resampled onto a window of the capture grid.
+
+    Parameters
+    ----------
+    references : path, RasterGrid or sequence of them
+        Georeferenced reference files, a mosaic: at each pixel the first file (in
+        the order given) with valid data wins.  Any CRS and pixel size.
+    capture : RasterGrid
+        The grid to resample onto.
+    rows, cols : slice
+        Window of the capture grid in pixels (integer start and stop, step 1).  It
+        may extend beyond the capture (a tile's halo, the search margin): the
+        reference is resampled there too where it has data.
+
+    Returns
+    -------
+    ndarray, shape (rows.stop - rows.start, cols.stop - cols.start), float32
+        Luminance with the dtype policy of :func:`rsmb.tiles.read_image`
+        (``as_float01``; ``0.299 R + 0.587 G + 0.114 B``), NaN where no reference
+        has data (nodata, alpha 0, outside every file).
+
+    Notes
+    -----
+    Resampling is bilinear (GDAL's warper: where the reference is finer than the
+    capture the kernel widens to the reference pixels under a capture pixel, so it
+    also averages; nodata pixels are left out and the weights renormalised, so a
+    capture pixel is valid when any reference pixel under its kernel is).  A
+    reference on the capture's own grid (same CRS, pixel size and rotation, origin
+    a whole number of pixels away) is copied, not resampled: the result is exact.
+
+    Only the reference pixels under the window (plus a few for the kernel) are
+    read from each file; consecutive files on one grid are mosaicked before
+    resampling, so their seams are invisible.  Memory is the window's size times
+    the squared ratio of capture to reference pixel size.
+    """
+    rows, cols = _check_window(rows, "rows"), _check_window(cols, "cols")
+    out = np.full((rows.stop - rows.start, cols.stop - cols.start), np.nan, dtype=np.float32)
+    if out.size == 0:
+        return out
+    dst_affine = capture.window_affine(rows, cols)
+    for run in _same_grid_runs(_as_grids(references)):
+        _fill_from_run(out, run, capture.crs, dst_affine)
+        if not np.isnan(out).any():
+            break
+    return out
+
+
+def _check_window(index: slice, label: str) -> slice:
+    if not isinstance(index, slice) or index.step not in (None, 1):
+        raise ParameterError(f"{label}: expected a slice with step 1, got {index!r}")
+    if not isinstance(index.start, (int, np.integer)) or not isinstance(index.stop, (int, np.integer)):
+        raise ParameterError(f"{label}: expected integer start and stop, got {index!r}")
+    if index.stop < index.start:
+        raise ParameterError(f"{label}: expected stop >= start, got {index!r}")
+    return slice(int(index.start), int(index.stop))
+
+
+def _grid_offset(base: RasterGrid, other: RasterGrid) -> tuple[int, int] | None:
+    """(row, col) of ``other``'s pixel (0, 0) in ``base``'s grid when both are the
+    same grid (whole-pixel offset), else None."""
+    if base.crs != other.crs and _crs(base.crs) != _crs(other.crs):
+        return None
+    m = ~base.affine @ other.affine  # other's pixels in base's pixels
+    if not (abs(m.a - 1) < _ALIGN_TOL and abs(m.e - 1) < _ALIGN_TOL
+            and abs(m.b) < _ALIGN_TOL and abs(m.d) < _ALIGN_TOL):
+        return None
+    dc, dr = round(m.c), round(m.f)
+    if abs(m.c - dc) > _ALIGN_TOL or abs(m.f - dr) > _ALIGN_TOL:
+        return None
+    return int(dr), int(dc)
+
+
+def _same_grid_runs(grids: list[RasterGrid]) -> list[list[tuple[RasterGrid, tuple[int, int]]]]:
+    """Consecutive files on one grid, each with its offset in the run's first grid
+    (order kept, so the first-wins rule holds across runs)."""
+    runs: list[list[tuple[RasterGrid, tuple[int, int]]]] = []
+    for grid in grids:
+        offset = _grid_offset(runs[-1][0][0], grid) if runs else None
+        if offset is None:
+            runs.append([(grid, (0, 0))])
+        else:
+            runs[-1].append((grid, offset))
+    return runs
+
+
+def _source_window(base: RasterGrid, dst_crs: str, dst_affine, shape) -> tuple[int, int, int, int]:
+    """(r0, r1, c0, c1) of ``base``'s pixels under the destination window, padded
+    for the resampling kernel (may extend beyond ``base``)."""
+    xs, ys = _ring(dst_affine, shape, dst_crs, base.crs)
+    ok = np.isfinite(xs) & np.isfinite(ys)
+    if not ok.any():
+        return 0, 0, 0, 0
+    c, r = ~base.affine @ (xs[ok], ys[ok])
+    c, r = np.asarray(c), np.asarray(r)
+    ratio = max((c.max() - c.min()) / shape[1], (r.max() - r.min()) / shape[0])
+    pad = math.ceil(ratio) + _KERNEL_PAD
+    return (math.floor(r.min()) - pad, math.ceil(r.max()) + pad,
+            math.floor(c.min()) - pad, math.ceil(c.max()) + pad)
+
+
+def _mosaic_run(run, window) -> np.ndarray | None:
+    """The run's files pasted into ``window`` of the first file's grid (first valid
+    wins), NaN elsewhere; None when no file meets the window."""
+    r0, r1, c0, c1 = window
+    mosaic = None
+    for grid, (dr, dc) in run:
+        a0, a1 = max(r0, dr), min(r1, dr + grid.shape[0])
+        b0, b1 = max(c0, dc), min(c1, dc + grid.shape[1])
+        if a1 <= a0 or b1 <= b0:
+            continue
+        if mosaic is None:
+            mosaic = np.full((r1 - r0, c1 - c0), np.nan, dtype=np.float32)
+        data, valid = read_window(grid.path, slice(a0 - dr, a1 - dr), slice(b0 - dc, b1 - dc))
+        target = mosaic[a0 - r0:a1 - r0, b0 - c0:b1 - c0]
+        fill = valid & np.isnan(target)
+        target[fill] = data[fill]
+    return mosaic
+
+
+def _fill_from_run(out: np.ndarray, run, dst_crs: str, dst_affine) -> None:
+    """Fill the NaN pixels of ``out`` with one run of same-grid reference files."""
+    from rasterio.transform import Affine
+
+    base = run[0][0]
+    window = _source_window(base, dst_crs, dst_affine, out.shape)
+    if window[1] <= window[0] or window[3] <= window[2]:
+        return
+    mosaic = _mosaic_run(run, window)
+    if mosaic is None:
+        return
+    src_affine = base.affine @ Affine.translation(window[2], window[0])
+    warped = _resample(mosaic, base.crs, src_affine, dst_crs, dst_affine, out.shape)
+    hole = np.isnan(out)
+    out[hole] = warped[hole]
+
+
+def _resample(src: np.ndarray, src_crs: str, src_affine, dst_crs: str, dst_affine, shape) -> np.ndarray:
+    """``src`` (NaN = no data) onto the destination grid: a copy when the grids
+    coincide up to a whole-pixel offset, bilinear otherwise."""
+    from rasterio.enums import Resampling
+    from rasterio.warp import reproject
+
+    src_grid = RasterGrid("", src_crs, tuple(src_affine)[:6], src.shape)
+    dst_grid = RasterGrid("", dst_crs, tuple(dst_affine)[:6], shape)
+    offset = _grid_offset(src_grid, dst_grid)
+    if offset is not None:
+        return _read_clipped_array(src, slice(offset[0], offset[0] + shape[0]),
+                                   slice(offset[1], offset[1] + shape[1]))
+    dst = np.full(shape, np.nan, dtype=np.float32)
+    reproject(source=src, destination=dst, src_transform=src_affine, src_crs=_crs(src_crs),
+              src_nodata=np.nan, dst_transform=dst_affine, dst_crs=_crs(dst_crs),
+              dst_nodata=np.nan, resampling=Resampling.bilinear)
+    return dst
+
+
+def _read_clipped_array(array: np.ndarray, rows: slice, cols: slice) -> np.ndarray:
+    out = np.full((rows.stop - rows.start, cols.stop - cols.start), np.nan, dtype=np.float32)
+    r0, r1 = max(rows.start, 0), min(rows.stop, array.shape[0])
+    c0, c1 = max(cols.start, 0), min(cols.stop, array.shape[1])
+    if r1 > r0 and c1 > c0:
+        out[r0 - rows.start:r1 - rows.start, c0 - cols.start:c1 - cols.start] = array[r0:r1, c0:c1]
+    return out
+
+
+# ---------------------------------------------------------------------- pairing
+
+
+@dataclass(frozen=True)
+class Pairing:
+    """How a capture is compared with its reference set (see the module's rule).
+
+    Attributes
+    ----------
+    mode : {"georeferenced", "pixel"}
+    capture : str
+        The capture's path.
+    shape : tuple of int
+        The capture's (H, W) in pixels: the grid of every output.
+    references : tuple of str
+        Every reference file given, in order.
+    reason : str
+        One line saying why this mode was chosen.
+    grid : RasterGrid or None
+        The capture's grid (georeferenced mode).
+    reference_grids : tuple of RasterGrid
+        The references that overlap the capture, in the order given (georeferenced
+        mode); empty in pixel mode.
+    coverage : Coverage or None
+        Coverage of the capture by the reference set (georeferenced mode).
+    """
+
+    mode: str
+    capture: str
+    shape: tuple[int, int]
+    references: tuple[str, ...]
+    reason: str
+    grid: RasterGrid | None = None
+    reference_grids: tuple[RasterGrid, ...] = field(default=())
+    coverage: Coverage | None = None
+
+    def reference_window(self, rows: slice, cols: slice) -> np.ndarray:
+        """The reference under the capture window ``rows, cols``.
+
+        Returns
+        -------
+        ndarray, shape (rows.stop - rows.start, cols.stop - cols.start), float32
+            NaN where there is no reference data.  Georeferenced mode:
+            :func:`reference_window`; pixel mode: the reference's own pixels (NaN
+            beyond its edges, as for the capture's tiles).
+        """
+        if self.mode == "georeferenced":
+            return reference_window(self.reference_grids, self.grid, rows, cols)
+        rows, cols = _check_window(rows, "rows"), _check_window(cols, "cols")
+        return _read_clipped(self.references[0], self.shape, rows, cols)
+
+
+def pair_images(references: str | os.PathLike | Sequence[str | os.PathLike],
+                capture: str | os.PathLike) -> Pairing:
+    """Decide how ``capture`` is compared with ``references``, before any work.
+
+    Reads headers only (no pixels, no checksums).
+
+    Parameters
+    ----------
+    references : path or sequence of paths
+        One reference image, or a georeferenced reference set (a mosaic).
+    capture : path
+        The distorted capture; its grid is the grid of every output.
+
+    Returns
+    -------
+    Pairing
+
+    Raises
+    ------
+    InputError
+        One line naming the files: unreadable files; footprints that do not
+        overlap; in pixel mode, several reference files or a reference of another
+        size.
+    ParameterError
+        No reference given.
+    """
+    paths = [os.fspath(references)] if isinstance(references, (str, os.PathLike)) else \
+        [os.fspath(r) for r in references]
+    if not paths:
+        raise ParameterError("references: expected at least one reference file, got none")
+    cap = os.fspath(capture)
+    cap_shape, cap_geo = probe_header(cap)
+    headers = [probe_header(p) for p in paths]
+    georef = [is_georeferenced(geo) for _, geo in headers]
+    if is_georeferenced(cap_geo) and all(georef):
+        return _pair_georeferenced(paths, headers, cap, cap_shape, cap_geo)
+    if not is_georeferenced(cap_geo) and not any(georef):
+        reason = "neither image is georeferenced: compared pixel for pixel"
+    else:
+        lacking = cap if not is_georeferenced(cap_geo) else paths[georef.index(False)]
+        reason = (f"{lacking} is not georeferenced: compared pixel for pixel, "
+                  f"georeferencing ignored for the pairing")
+    return _pair_pixels(paths, headers, cap, cap_shape, reason)
+
+
+def _pair_pixels(paths, headers, cap, cap_shape, reason) -> Pairing:
+    if len(paths) > 1:
+        raise InputError(f"{cap}: {len(paths)} reference files given but {reason.split(':')[0]}; "
+                         f"a reference set of several files needs georeferencing on every file "
+                         f"and on the capture")
+    ref_shape = headers[0][0]
+    if ref_shape != cap_shape:
+        raise InputError(f"{cap}: size {cap_shape} differs from the reference {paths[0]} "
+                         f"{ref_shape}; give images of the same size ({reason})")
+    return Pairing("pixel", cap, cap_shape, tuple(paths), reason)
+
+
+def _pair_georeferenced(paths, headers, cap, cap_shape, cap_geo) -> Pairing:
+    grid = RasterGrid._from_geo(cap, cap_shape, cap_geo)
+    ref_grids = [RasterGrid._from_geo(p, shape, geo) for p, (shape, geo) in zip(paths, headers)]
+    coverage = reference_coverage(ref_grids, grid)
+    if not coverage.files:
+        raise InputError(f"{cap}: footprint does not overlap the reference {_name_files(paths)}")
+    overlapping = tuple(g for g in ref_grids if g.path in coverage.files)
+    reason = (f"both georeferenced: the reference set is resampled onto the capture grid "
+              f"({coverage.fraction:.1%} of the capture covered)")
+    return Pairing("georeferenced", cap, cap_shape, tuple(paths), reason, grid, overlapping, coverage)
+
+
+def _name_files(paths: Sequence[str], limit: int = 3) -> str:
+    names = ", ".join(paths[:limit])
+    if len(paths) > limit:
+        names += f" and {len(paths) - limit} more"
+    return names
