@@ -26,6 +26,7 @@ whatever the tile, so small tiles would pay them many times over.
 
 import contextlib
 import dataclasses
+import functools
 import hashlib
 import json
 import logging
@@ -119,6 +120,12 @@ class DetectResult:
         Throughput of the whole run.
     timings : dict
         Seconds per stage and task sums.
+    pairing : str
+        "georeferenced" (the reference set resampled onto the capture grid) or
+        "pixel" (compared pixel for pixel).
+    reference_coverage : float or None
+        Fraction of the capture's footprint the reference set covers
+        (georeferenced pairing); the rest is no-data, never change.
     """
 
     output: str
@@ -137,6 +144,8 @@ class DetectResult:
     tasks_per_tile: float
     megapixels_per_s: float
     timings: dict
+    pairing: str = "pixel"
+    reference_coverage: float | None = None
 
     def as_dict(self):
         """The fields as a JSON-ready dict."""
@@ -179,11 +188,11 @@ def _expected_cost(tile, camera):
     return (r1 - r0) * (c1 - c0) * far
 
 
-def _run_key(ref_info, dist_info, config, grid):
+def _run_key(ref_infos, dist_info, config, grid):
     """What a ``--resume`` must find unchanged: the inputs' checksums, the
     configuration, the grid, the installed version and the kernels' version
     (:data:`ops.KERNEL_VERSION`, raised whenever the kernels' results change)."""
-    text = json.dumps(tiles.jsonable({"reference": ref_info.sha256, "distorted": dist_info.sha256,
+    text = json.dumps(tiles.jsonable({"reference": [r.sha256 for r in ref_infos], "distorted": dist_info.sha256,
                                       "config": config, "grid": [grid.shape, grid.tile, grid.halo],
                                       "version": VERSION, "kernels": ops.KERNEL_VERSION}), sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()
@@ -205,7 +214,8 @@ def _block_grid(grid):
 class _Plan:
     """What a run works on, derived before anything is written."""
 
-    reference: tiles.ImageInfo
+    pairing: tiles.Pairing
+    references: tuple  # ImageInfo of each reference file read
     distorted: tiles.ImageInfo
     output: Path
     config: DetectConfig
@@ -219,15 +229,31 @@ class _Plan:
     def shape(self):
         return self.grid.shape
 
+    @property
+    def margin(self):
+        """Pixels of reference ingested around the capture: the halo when the
+        reference is resampled onto the capture grid (it may extend beyond the
+        capture), none when the two are compared pixel for pixel."""
+        return self.grid.halo if self.pairing.mode == "georeferenced" else 0
 
-def _plan(reference, distorted, output, config):
-    """Probe the inputs and derive the camera, the resolved parameters, the tile
-    grid and the run key."""
-    ref_info = tiles.probe_image(reference)
+    @property
+    def reference_blocks(self):
+        """Blocks of the reference array (the capture grid grown by the margin)."""
+        m = self.margin
+        if m == 0:
+            return self.blocks
+        shape = (self.shape[0] + 2 * m, self.shape[1] + 2 * m)
+        return tiles.TileGrid(shape, self.grid.tile, 0).coarsened(self.blocks.tile // self.grid.tile)
+
+
+def _plan(references, distorted, output, config):
+    """Pair the capture with its reference set (by footprint when both are
+    georeferenced, else pixel for pixel), probe the inputs and derive the
+    camera, the resolved parameters, the tile grid and the run key."""
+    pairing = tiles.pair_images(references, distorted)
     dist_info = tiles.probe_image(distorted)
-    if ref_info.shape != dist_info.shape:
-        raise InputError(f"{dist_info.path}: size {dist_info.shape} differs from the reference "
-                         f"{ref_info.path} {ref_info.shape}; give images of the same size")
+    read = pairing.reference_grids if pairing.mode == "georeferenced" else pairing.references
+    ref_infos = tuple(tiles.probe_image(getattr(r, "path", r)) for r in read)
     shape = dist_info.shape
     camera = ops.Camera.for_shape(shape, focal=config.focal)
     params = config.registration.resolved(camera)
@@ -235,8 +261,9 @@ def _plan(reference, distorted, output, config):
     tile = config.tile or default_tile(shape)
     side = max(max(shape), 32)  # one tile of this side holds the image; a halo this wide reaches across it
     if tile > side:
-        log.warning("note: tile size %d px is larger than the image (%d x %d): one tile of %d px", tile, *shape,
-                    side)
+        if config.tile:  # asked for, not the default
+            log.warning("note: tile size %d px is larger than the image (%d x %d): one tile of %d px", tile,
+                        *shape, side)
         tile = side
     if halo > side:
         log.warning("note: overlap %d px reaches beyond the image (%d x %d): using %d px", halo, *shape, side)
@@ -244,21 +271,26 @@ def _plan(reference, distorted, output, config):
     grid = tiles.TileGrid(shape, tile, halo)
     # what runs, 'auto' resolved: the same run keys the same whichever way it was asked for
     config = dataclasses.replace(config, registration=params, tile=grid.tile, overlap=grid.halo)
-    return _Plan(ref_info, dist_info, Path(output), config, camera, params, grid, _block_grid(grid),
-                 _run_key(ref_info, dist_info, config, grid))
+    return _Plan(pairing, ref_infos, dist_info, Path(output), config, camera, params, grid, _block_grid(grid),
+                 _run_key(ref_infos, dist_info, config, grid))
 
 
 def _ingest(runner, group, run, plan, timings):
-    """Stage 2: both inputs into the store, one task per block."""
+    """Stage 2: both inputs into the store, one task per block of each: the
+    capture on its own grid, the reference resampled onto it (with a margin
+    around it when georeferenced)."""
     t0 = time.perf_counter()
     if group.attrs.get("ingest_complete"):
         log.info("ingest: already complete (resume)")
     else:
-        sources = [("ingest/reference", plan.reference.path), ("ingest/distorted", plan.distorted.path)]
-        stats = runner.map("ingest", _tasks.ingest_task,
-                           [(run, sources, plan.shape, b) for b in plan.blocks])
-        for k, info in enumerate((plan.reference, plan.distorted)):
-            tiles.check_stats(sum((s[k] for s in stats[1:]), stats[0][k]), info.path)
+        m = plan.margin
+        capture = functools.partial(tiles.read_clipped, plan.distorted.path, plan.shape)
+        jobs = [(run, "ingest/distorted", capture, b, (0, 0)) for b in plan.blocks]
+        jobs += [(run, "ingest/reference", plan.pairing.reference_window, b, (m, m)) for b in plan.reference_blocks]
+        stats = runner.map("ingest", _tasks.ingest_task, jobs)
+        n = len(plan.blocks)
+        tiles.check_stats(sum(stats[1:n], stats[0]), plan.distorted.path)
+        tiles.check_stats(sum(stats[n + 1:], stats[n]), ", ".join(r.path for r in plan.references))
         group.attrs["ingest_complete"] = True
     timings["ingest_s"] = time.perf_counter() - t0
 
@@ -351,6 +383,14 @@ class _Counted:
         return self.runner.map(label, func, argument_lists)
 
 
+def _pairing_attrs(pairing):
+    out = {"mode": pairing.mode, "reason": pairing.reason, "references": list(pairing.references)}
+    if pairing.coverage is not None:
+        out["coverage"] = pairing.coverage.fraction
+        out["read"] = list(pairing.coverage.files)
+    return out
+
+
 def _attributes(plan, result, scheduler):
     """Root attributes of the store (DESIGN.md's output store)."""
     axes, grid, camera = plan.params.axes, plan.grid, plan.camera
@@ -365,14 +405,16 @@ def _attributes(plan, result, scheduler):
                       "tiles": list(grid.grid_shape), "row_edges": grid.row_edges.tolist(),
                       "col_edges": grid.col_edges.tolist()},
         "camera": {"focal_px": camera.focal, "center_xy": list(camera.center_xy)},
-        "inputs": {"reference": {"path": plan.reference.path, "sha256": plan.reference.sha256},
-                   "distorted": {"path": plan.distorted.path, "sha256": plan.distorted.sha256}},
+        "inputs": {"distorted": {"path": plan.distorted.path, "sha256": plan.distorted.sha256},
+                   **{f"reference{'' if k == 0 else f'_{k + 1}'}": {"path": r.path, "sha256": r.sha256}
+                      for k, r in enumerate(plan.references)}},
+        "pairing": _pairing_attrs(plan.pairing),
         "scheduler": scheduler,
         "summary": result.as_dict(),
         **plan.distorted.geo.to_attrs(),
     }
-    if not plan.reference.geo.is_empty:
-        attrs["reference_georeferencing"] = plan.reference.geo.to_attrs()
+    if plan.pairing.mode == "pixel" and not plan.references[0].geo.is_empty:
+        attrs["reference_georeferencing"] = plan.references[0].geo.to_attrs()
     return tiles.jsonable(attrs)
 
 
@@ -387,7 +429,10 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff):
         del group[name]
     final = tiles.finalize_result_store(store, plan.output, overwrite=overwrite)
     if geotiff is not None:
-        _write_geotiffs(final, geotiff, plan.reference, plan.distorted)
+        # the reference-grid mask is on the reference's grid when compared pixel for pixel, else on the
+        # capture's nominal grid
+        reference_geo = plan.references[0].geo if plan.pairing.mode == "pixel" else plan.distorted.geo
+        _write_geotiffs(final, geotiff, reference_geo, plan.distorted.geo)
     log.info("wrote %s: %d changed px (threshold %.3f), %.2f MP/s", final, result.changed_pixels, result.threshold,
              result.megapixels_per_s)
 
@@ -398,8 +443,14 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
 
     Parameters
     ----------
-    reference, distorted : str or path-like
-        Images (GeoTIFF, PNG/JPEG, NPY or a zarr array) of the same size.
+    reference : str or path-like, or a sequence of them
+        The reference: one image (GeoTIFF, PNG/JPEG, NPY or a zarr array) of
+        the capture's size, or, when it and the capture are georeferenced, a
+        reference set of any extent, pixel size and CRS (a mosaic of files):
+        only its part under the capture's footprint (plus the halo) is read and
+        resampled onto the capture's grid.
+    distorted : str or path-like
+        The capture; its grid is the grid of every output.
     output : str or path-like
         The zarr store to write (see DESIGN.md's output store).
     config : DetectConfig, optional
@@ -431,24 +482,27 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
     Raises
     ------
     InputError
-        Unusable inputs (unreadable, empty, constant, NaN, different sizes) or an
-        existing output without ``overwrite``.
+        Unusable inputs (unreadable, empty, constant, NaN, different sizes when
+        not georeferenced, footprints that do not overlap) or an output that
+        cannot be written (existing without ``overwrite``, under a file, on a
+        read-only file system).
     """
     t_start = time.perf_counter()
     config = config or DetectConfig()
-    reference, distorted, output = (os.path.abspath(p) for p in (reference, distorted, output))
+    references = [os.path.abspath(r) for r in ([reference] if isinstance(reference, (str, os.PathLike)) else reference)]
+    distorted, output = os.path.abspath(distorted), os.path.abspath(output)
     geotiff = None if geotiff is None else os.path.abspath(geotiff)
-    plan = _plan(reference, distorted, output, config)
+    plan = _plan(references, distorted, output, config)
     if resume:
         done = _finished(output, plan.key)
         if done is not None:
             return DetectResult(**done)
     check_scheduler(scheduler)
     _check_outputs(output, geotiff, overwrite)
-    group = tiles.create_result_store(output, _specs(plan.grid, len(plan.params.axes)), {"run_key": plan.key},
-                                      overwrite=overwrite, resume=resume)
+    group = tiles.create_result_store(output, _specs(plan.grid, len(plan.params.axes), plan.margin),
+                                      {"run_key": plan.key}, overwrite=overwrite, resume=resume)
     store = str(tiles.partial_path(output))
-    run = _tasks.RunStore(store, plan.key)
+    run = _tasks.RunStore(store, plan.key, plan.margin)
     if resume and group.attrs.get("run_key") != plan.key:
         raise InputError(f"{output}: the interrupted run had other inputs or parameters; run without --resume")
     timings = {}
@@ -473,7 +527,8 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             resolved_tiles=[list(t) for t in resolve],
             tile_agreement_px_max=float(np.nanmax(agree)) if np.isfinite(agree).any() else None,
             tasks_per_tile=tasks_per_tile, megapixels_per_s=shape[0] * shape[1] / 1e6 / timings["total_s"],
-            timings=timings)
+            timings=timings, pairing=plan.pairing.mode,
+            reference_coverage=None if plan.pairing.coverage is None else plan.pairing.coverage.fraction)
         _finish(group, store, plan, result, scheduler, overwrite, geotiff)
         return result
     except BaseException as error:

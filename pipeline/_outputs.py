@@ -50,15 +50,15 @@ def _finished(output, key):
     return attrs["summary"]
 
 
-def _write_geotiffs(store, directory, ref_info, dist_info):
+def _write_geotiffs(store, directory, reference_geo, capture_geo):
     """The masks and the score as GeoTIFFs, each written aside and renamed
     into place."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     group = tiles.open_result_store(store)
-    sources = {"change_mask.tif": ("change_mask", dist_info.geo),
-               "change_mask_reference.tif": ("change_mask_reference", ref_info.geo),
-               "change_score.tif": ("change_score", dist_info.geo)}
+    sources = {"change_mask.tif": ("change_mask", capture_geo),
+               "change_mask_reference.tif": ("change_mask_reference", reference_geo),
+               "change_score.tif": ("change_score", capture_geo)}
     for name in GEOTIFFS:
         array, geo = sources[name]
         fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tif", dir=directory)

@@ -20,7 +20,9 @@ from rsmb.tiles._stitch import TileLabels
 __all__ = []
 
 
-def _specs(grid, dims):
+def _specs(grid, dims, margin=0):
+    """The run's arrays: outputs, scratch, and the ingested inputs (the reference
+    with ``margin`` pixels around the capture grid)."""
     h, w = grid.shape
     t = grid.tile
     ny, nx = grid.grid_shape
@@ -41,7 +43,7 @@ def _specs(grid, dims):
         "work/tile_summary": spec((ny, nx, _SUMMARY), "float64", (1, 1, _SUMMARY), ("tile_y", "tile_x", "value"),
                                   compressed=False),
         "work/labels": spec((h, w), "int32", (t, t), ("y", "x"), compressed=False),
-        "ingest/reference": spec((h, w), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
+        "ingest/reference": spec((h + 2 * margin, w + 2 * margin), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
         "ingest/distorted": spec((h, w), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
     }
 
@@ -85,6 +87,7 @@ class RunStore:
 
     path: str
     key: str
+    reference_offset: int = 0  # the reference array holds capture pixel (r, c) at (r + offset, c + offset)
 
 
 @functools.lru_cache(maxsize=32)
@@ -92,10 +95,10 @@ def _array(store, name):
     return zarr.open_group(store=store.path, mode="r+")[name]
 
 
-def ingest_task(store, sources, shape, block):
-    """Ingest one block of each input image: ``sources`` lists (array name, image
-    path) pairs (see :mod:`tiles._ingest`).  Returns their WindowStats."""
-    return [ingest_core(path, shape, block, _array(store, name)) for name, path in sources]
+def ingest_task(store, name, read, block, offset):
+    """Ingest one block of the array ``name`` from ``read(rows, cols)`` (see
+    :func:`tiles.ingest_core`).  Returns its WindowStats."""
+    return ingest_core(read, block, _array(store, name), offset)
 
 
 def register_task(store, tile, camera, params, prior=None):
@@ -111,7 +114,10 @@ def register_task(store, tile, camera, params, prior=None):
     start = time.perf_counter()
     ty, tx = tile.index
     h, w = tile.core_shape
-    reference = read_padded(_array(store, "ingest/reference"), *tile.window)
+    m = store.reference_offset
+    rows, cols = tile.window
+    reference = read_padded(_array(store, "ingest/reference"), slice(rows.start + m, rows.stop + m),
+                            slice(cols.start + m, cols.stop + m))
     distorted = _array(store, "ingest/distorted")[tile.core]
     read = time.perf_counter() - start
     dist_valid = np.isfinite(distorted)

@@ -1,6 +1,7 @@
 """rsmb installs one import package, ``rsmb``, and lives beside distributions
 whose top-level names are generic (the Operator Framework's ``ops``)."""
 
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -17,7 +18,11 @@ def _pip(*args, cwd):
 
 @pytest.mark.slow
 def test_one_package_beside_ops(tmp_path):
-    build = _pip("wheel", "--no-deps", "-q", "-w", str(tmp_path / "dist"), str(REPO), cwd=tmp_path)
+    # build from a copy: setuptools leaves a build/ folder in the tree it builds
+    source = tmp_path / "source"
+    shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(".venv", ".git", "build", "*.egg-info", "__pycache__",
+                                                              ".pytest_cache", "*.zarr", "rsmb-demo", "bench-out"))
+    build = _pip("wheel", "--no-deps", "-q", "-w", str(tmp_path / "dist"), str(source), cwd=tmp_path)
     assert build.returncode == 0, build.stderr
     wheel, = (tmp_path / "dist").glob("rsmb-*.whl")
     with zipfile.ZipFile(wheel) as zf:

@@ -12,7 +12,7 @@ from ._georef import (
     reference_window,
 )
 from ._grid import Tile, TileGrid
-from ._ingest import WindowStats, check_stats, ingest_core, read_padded
+from ._ingest import WindowStats, check_stats, ingest_core, read_clipped, read_padded
 from ._geo import GeoInfo, write_spatial_coords
 from ._io import (
     ImageInfo,
@@ -53,6 +53,7 @@ __all__ = [
     "WindowStats",
     "check_stats",
     "ingest_core",
+    "read_clipped",
     "read_padded",
     "GeoInfo",
     "ImageInfo",

@@ -40,7 +40,7 @@ import numpy as np
 
 from rsmb.ops._errors import InputError, ParameterError
 
-from ._ingest import _read_clipped
+from ._ingest import read_clipped
 from ._geo import GeoInfo
 from ._io import ImageInfo, probe_header, read_window
 
@@ -487,7 +487,7 @@ class Pairing:
         if self.mode == "georeferenced":
             return reference_window(self.reference_grids, self.grid, rows, cols)
         rows, cols = _check_window(rows, "rows"), _check_window(cols, "cols")
-        return _read_clipped(self.references[0], self.shape, rows, cols)
+        return read_clipped(self.references[0], self.shape, rows, cols)
 
 
 def pair_images(references: str | os.PathLike | Sequence[str | os.PathLike],

@@ -19,7 +19,7 @@ from rsmb.ops import InputError
 
 from ._io import read_window
 
-__all__ = ["ingest_core", "read_padded", "check_stats", "WindowStats"]
+__all__ = ["ingest_core", "read_clipped", "read_padded", "check_stats", "WindowStats"]
 
 
 @dataclass(frozen=True)
@@ -38,8 +38,9 @@ class WindowStats:
         return WindowStats(self.count + other.count, min(self.low, other.low), max(self.high, other.high))
 
 
-def _read_clipped(path, shape, rows, cols):
-    """Window (rows, cols) of the image, NaN where nodata or beyond the image."""
+def read_clipped(path, shape, rows, cols):
+    """Window (rows, cols) of the image at ``path`` of ``shape`` (H, W), NaN
+    where nodata or beyond the image."""
     out = np.full((rows.stop - rows.start, cols.stop - cols.start), np.nan, dtype=np.float32)
     r0, r1 = max(rows.start, 0), min(rows.stop, shape[0])
     c0, c1 = max(cols.start, 0), min(cols.stop, shape[1])
@@ -68,10 +69,14 @@ def read_padded(array, rows, cols):
     return out
 
 
-def ingest_core(path, shape, tile, array):
-    """Write ``tile``'s core (a tile or a block of tiles) of the image at ``path``
-    into ``array`` (H, W).  Returns :class:`WindowStats` of the core."""
-    data = _read_clipped(path, shape, *tile.core)
+def ingest_core(read, tile, array, offset=(0, 0)):
+    """Write ``tile``'s core (a tile or a block of tiles) of ``array`` from
+    ``read(rows, cols)`` (float32, NaN for nodata) of the source window at the
+    core less ``offset`` (an array padded by a margin holds source pixel (r, c)
+    at (r + margin, c + margin)).  Returns :class:`WindowStats` of the core."""
+    rows, cols = tile.core
+    data = read(slice(rows.start - offset[0], rows.stop - offset[0]),
+                 slice(cols.start - offset[1], cols.stop - offset[1]))
     array[tile.core] = data
     return _stats(data)
 
