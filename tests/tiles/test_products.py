@@ -9,7 +9,6 @@ import rasterio
 import zarr
 from pyogrio.raw import read
 from rasterio.crs import CRS
-from rasterio.transform import Affine
 
 from rsmb.ops import InputError, label_components
 from rsmb.tiles import GeoInfo
