@@ -14,11 +14,28 @@ import numpy as np
 
 from ._rowproblem import _centroid
 from ._rowsolve import _solve_huber_nn, _synthesize
+from ._start import _refine_start
 from ._warp import _gather_row
 
 __all__ = []
 
 _SUMS = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})
+
+#: A row whose centroid moves the window's farthest pixel more than this (px)
+#: away from where the path before it leads (its last pose plus its velocity)
+#: re-anchors the path: a block of rows from it on is solved jointly, as the
+#: start block is, on a grid wide enough for both the row's pose and the
+#: prediction, and the row is solved again around the block's centroid.  A
+#: camera path moves a pixel by a small fraction of this from one row to the
+#: next; a row that jumps is a real turn of the path or a fit that a change or
+#: an ambiguity (rz against ty on a single row) has pulled into a wrong basin,
+#: from which the rows after it could not climb out.  One row cannot tell the
+#: two apart (its own eq. 13 cost can be lower in the wrong basin); a block
+#: can.
+DRIFT_PX = 0.75
+#: ... plus this much (px) per row since the last row on the path: the
+#: velocity the prediction extrapolates is itself uncertain.
+DRIFT_PX_PER_ROW = 0.1
 
 
 class _Gather(NamedTuple):
@@ -60,8 +77,9 @@ class _Prewarp(NamedTuple):
 
 class _Lattice(NamedTuple):
     """The row neighbourhood: lattice offsets (K, D) int64, counts per axis,
-    steps per axis, and the dimensions of ty, tx and the one other axis (-1
-    when absent)."""
+    steps per axis, the dimensions of ty, tx and the one other axis (-1 when
+    absent), and per axis the pixels a unit moves the window's farthest pixel
+    (:func:`px_per_unit`)."""
 
     offsets: np.ndarray
     counts: np.ndarray
@@ -69,6 +87,7 @@ class _Lattice(NamedTuple):
     ty_dim: int
     tx_dim: int
     other_dim: int
+    px_per_unit: np.ndarray
 
 
 class _Capture(NamedTuple):
@@ -148,78 +167,108 @@ def _row_step(stack, gather, y, x0, g_row, g_valid, w, settings, a, reg_out, chi
 
 
 @numba.njit(**_SUMS)
-def _propagate_rows(prewarp, lattice, settings, capture, out, rows, prev, c_prev, prev_center, w_prev, a):
+def _solve_at(pose, i, prewarp, lattice, settings, capture, out, prev_center, w_prev, a, w, center, gather):
+    """Solve row ``i`` on the grid ``N(pose, b, s)``, warm-started from the
+    weights ``w_prev`` of a grid centred at ``prev_center`` (None-like: a
+    negative first entry of ``prev_center`` is never used, see the caller).
+    Writes the row's outputs, ``w`` and ``center``.  Returns (status, other
+    lattice index, band, cost per valid pixel, valid count): status 0 solved,
+    1 a pre-warped image is missing, 2 the grid left the table."""
+    table, other_lo, band_lo = prewarp.table, prewarp.other_lo, prewarp.band_lo
+    offsets, counts, step = lattice.offsets, lattice.counts, lattice.step
+    ty_dim, tx_dim, other_dim = lattice.ty_dim, lattice.tx_dim, lattice.other_dim
+    k_count, dims = offsets.shape
+    slot, sy, sx = gather.slot, gather.shift_y, gather.shift_x
+    for d in range(dims):
+        center[d] = np.int64(np.round(pose[d] / step[d]))
+    cy = np.int64(np.round(center[ty_dim] * step[ty_dim])) if ty_dim >= 0 else 0
+    bnd = (i + prewarp.margin - cy) // prewarp.band
+    y = i + prewarp.margin - (bnd * prewarp.band - prewarp.pad)
+    b = bnd - band_lo
+    for k in range(k_count):
+        if ty_dim >= 0:
+            sy[k] = np.int64(np.round((center[ty_dim] + offsets[k, ty_dim]) * step[ty_dim]))
+        if tx_dim >= 0:
+            sx[k] = np.int64(np.round((center[tx_dim] + offsets[k, tx_dim]) * step[tx_dim]))
+        o = center[other_dim] + offsets[k, other_dim] - other_lo if other_dim >= 0 else 0
+        if o < 0 or o >= table.shape[0] or b < 0 or b >= table.shape[1]:
+            return 2, o + other_lo, bnd, 0.0, 0
+        if table[o, b] < 0:
+            return 1, o + other_lo, bnd, 0.0, 0
+        slot[k] = table[o, b]
+    # warm start: new[o] = old[o + (center - prev_center)]
+    for k in range(k_count):
+        w[k] = 0.0
+        src = 0
+        inside = True
+        for d in range(dims):
+            m = offsets[k, d] + counts[d] // 2 + center[d] - prev_center[d]
+            if m < 0 or m >= counts[d]:
+                inside = False
+                break
+            src = src * counts[d] + m
+        if inside:
+            w[k] = w_prev[src]
+    objective, count = _row_step(prewarp.stack, gather, y, prewarp.margin, capture.dist[i], capture.dist_valid[i],
+                                 w, settings, a, out.registered[i], out.chi[i], out.valid[i])
+    return 0, 0, 0, objective / max(count, 1), count
+
+
+@numba.njit(**_SUMS)
+def _centroid_of(w, center, offsets, step, out):
+    """``out`` (D,) = the centroid pose of weights ``w`` on the grid at
+    lattice ``center``; returns their sum."""
+    k_count, dims = offsets.shape
+    total = 0.0
+    for k in range(k_count):
+        total += w[k]
+    for d in range(dims):
+        acc = 0.0
+        for k in range(k_count):
+            acc += w[k] * offsets[k, d]
+        out[d] = (center[d] + acc / total) * step[d] if total > 0.0 else np.nan
+    return total
+
+
+@numba.njit(**_SUMS)
+def _propagate_rows(prewarp, lattice, settings, capture, out, rows, prev, c_prev, prev_center, w_prev, a, trust,
+                    anchor):
     """Propagate the trajectory along ``rows`` (in order) from the solved row
     ``prev`` (centroid ``c_prev``, lattice centre ``prev_center``, weights
     ``w_prev``), all in compiled code: per row, the grid ``N(c_prev, b, s)``,
     its pre-warped images (``prewarp.table[other index - other_lo, band -
     band_lo]``, -1 if missing), a warm start shifted from the previous row,
-    :func:`_row_step`, the centroid.  ``a`` (K, N) is work space.
+    :func:`_row_step`, the centroid.  ``a`` (K, N) is work space; ``trust``
+    (2 D + 2,) carries the path (last pose, velocity per row, its row, 1 when
+    the caller has just re-anchored it) across calls.
 
     Returns (position reached in ``rows``, other-axis lattice index, band,
     status): status 0 done, 1 a pre-warped image is missing (make it and call
     again from that position), 2 the grid left the table (solve that row
-    another way).
+    another way), 3 the row's centroid jumped off the path (:func:`_jumps`;
+    ``anchor`` (2, D) holds it and the path's prediction): re-anchor the path
+    on a block of rows and call again from that position.
     """
-    stack, table, other_lo, band_lo = prewarp.stack, prewarp.table, prewarp.other_lo, prewarp.band_lo
-    band, pad, margin = prewarp.band, prewarp.pad, prewarp.margin
-    offsets, counts, step = lattice.offsets, lattice.counts, lattice.step
-    ty_dim, tx_dim, other_dim = lattice.ty_dim, lattice.tx_dim, lattice.other_dim
-    informative, dist, dist_valid = capture.informative, capture.dist, capture.dist_valid
+    offsets, step = lattice.offsets, lattice.step
     k_count, dims = offsets.shape
     w = np.empty(k_count)
-    slot = np.empty(k_count, np.int64)
-    sy = np.zeros(k_count, np.int64)
-    sx = np.zeros(k_count, np.int64)
+    gather = _Gather(np.empty(k_count, np.int64), np.zeros(k_count, np.int64), np.zeros(k_count, np.int64))
     center = np.empty(dims, np.int64)
+    c_own, predicted = np.empty(dims), np.empty(dims)
     c_prev = c_prev.copy()
     prev_center = prev_center.copy()
     w_prev = w_prev.copy()
-    stride = np.ones(dims, np.int64)
-    for d in range(dims - 2, -1, -1):
-        stride[d] = stride[d + 1] * counts[d + 1]
     for pos in range(rows.shape[0]):
         i = rows[pos]
-        if not informative[i]:
+        if not capture.informative[i]:
             out.row_state[i] = 2
             continue
-        for d in range(dims):
-            center[d] = np.int64(np.round(c_prev[d] / step[d]))
-        cy = np.int64(np.round(center[ty_dim] * step[ty_dim])) if ty_dim >= 0 else 0
-        bnd = (i + margin - cy) // band
-        y = i + margin - (bnd * band - pad)
-        b = bnd - band_lo
+        status, o, bnd, cost, count = _solve_at(c_prev, i, prewarp, lattice, settings, capture, out, prev_center,
+                                                w_prev, a, w, center, gather)
+        if status != 0:
+            return pos, o, bnd, status
+        total = _centroid_of(w, center, offsets, step, c_own)
         for k in range(k_count):
-            if ty_dim >= 0:
-                sy[k] = np.int64(np.round((center[ty_dim] + offsets[k, ty_dim]) * step[ty_dim]))
-            if tx_dim >= 0:
-                sx[k] = np.int64(np.round((center[tx_dim] + offsets[k, tx_dim]) * step[tx_dim]))
-            o = center[other_dim] + offsets[k, other_dim] - other_lo if other_dim >= 0 else 0
-            if o < 0 or o >= table.shape[0] or b < 0 or b >= table.shape[1]:
-                return pos, o + other_lo, bnd, 2
-            if table[o, b] < 0:
-                return pos, o + other_lo, bnd, 1
-            slot[k] = table[o, b]
-        # warm start: new[o] = old[o + (center - prev_center)]
-        for k in range(k_count):
-            w[k] = 0.0
-        if prev >= 0:
-            for k in range(k_count):
-                src = 0
-                inside = True
-                for d in range(dims):
-                    m = offsets[k, d] + counts[d] // 2 + center[d] - prev_center[d]
-                    if m < 0 or m >= counts[d]:
-                        inside = False
-                        break
-                    src += m * stride[d]
-                if inside:
-                    w[k] = w_prev[src]
-        _, count = _row_step(stack, _Gather(slot, sy, sx), y, margin, dist[i], dist_valid[i], w, settings, a,
-                             out.registered[i], out.chi[i], out.valid[i])
-        total = 0.0
-        for k in range(k_count):
-            total += w[k]
             out.weights[i, k] = w[k]
         for d in range(dims):
             out.centers[i, d] = center[d]
@@ -227,17 +276,67 @@ def _propagate_rows(prewarp, lattice, settings, capture, out, rows, prev, c_prev
         if total <= 0.0 or count == 0:
             out.row_state[i] = 3
             continue
+        if trust[2 * dims + 1] == 0.0 and _jumps(c_own, i, lattice.px_per_unit, trust, predicted):
+            anchor[0] = c_own
+            anchor[1] = predicted
+            return pos, 0, 0, 3  # off the path: the caller re-anchors on a block of rows
+        _follow(c_own, i, trust)
         for d in range(dims):
-            acc = 0.0
-            for k in range(k_count):
-                acc += w[k] * offsets[k, d]
-            c_prev[d] = (center[d] + acc / total) * step[d]
-            out.trajectory[i, d] = c_prev[d]
+            c_prev[d] = c_own[d]
+            out.trajectory[i, d] = c_own[d]
         out.row_state[i] = 1
-        prev = i
         prev_center[:] = center
         w_prev[:] = w
     return rows.shape[0], 0, 0, 0
+
+
+@numba.njit(**_SUMS)
+def _jumps(centroid, row, px_per_unit, trust, predicted):
+    """Whether ``centroid`` of ``row`` lands more than :data:`DRIFT_PX` (plus
+    :data:`DRIFT_PX_PER_ROW` per row since) from the path's prediction,
+    written to ``predicted``.  ``trust`` (2 D + 2,) = (last pose (D), its
+    velocity per row (D), its row, a re-anchor flag)."""
+    dims = centroid.shape[0]
+    gap = row - trust[2 * dims]
+    jump = 0.0
+    for d in range(dims):
+        predicted[d] = trust[d] + trust[dims + d] * gap
+        jump = max(jump, abs(centroid[d] - predicted[d]) * px_per_unit[d])
+    return jump > DRIFT_PX + DRIFT_PX_PER_ROW * (abs(gap) - 1)
+
+
+@numba.njit(**_SUMS)
+def _follow(centroid, row, trust):
+    """The trusted path moves on to ``centroid`` at ``row``; its velocity is a
+    slow average of its steps."""
+    dims = centroid.shape[0]
+    gap = row - trust[2 * dims]
+    if gap != 0:
+        for d in range(dims):
+            trust[dims + d] = 0.8 * trust[dims + d] + 0.2 * (centroid[d] - trust[d]) / gap
+    for d in range(dims):
+        trust[d] = centroid[d]
+    trust[2 * dims] = row
+    trust[2 * dims + 1] = 0.0
+
+
+def _trust_state(centroid, row):
+    """The initial ``trust`` of :func:`_jumps`: the path at ``row``, at rest."""
+    dims = len(centroid)
+    return np.concatenate([np.asarray(centroid, np.float64), np.zeros(dims), [float(row), 0.0]])
+
+
+def _px_per_unit(problem):
+    """Per axis of ``problem`` (a :class:`_RowProblem`), the pixels a unit of
+    the axis moves the window's farthest pixel: 1 for tx, ty; its distance from
+    the principal point for s, and per radian for rz; the focal length per
+    radian for rx, ry (axes in degrees)."""
+    h, w = problem.dist.shape
+    radius = float(np.hypot(np.abs(np.array([problem.dx, problem.dx + w - 1]) - problem.cx).max(),
+                            np.abs(np.array([problem.dy, problem.dy + h - 1]) - problem.cy).max()))
+    scale = {"tx": 1.0, "ty": 1.0, "s": radius, "rz": np.radians(radius), "rx": np.radians(problem.focal),
+             "ry": np.radians(problem.focal)}
+    return np.array([scale[a] for a in problem.axes])
 
 
 def _shift_weights(w, counts, delta):
@@ -265,6 +364,7 @@ class _Propagation:
         self.counts, self.size = space.counts, space.size
         self.step = np.asarray(space.step)
         self.offsets_step = space.offsets() * self.step
+        self.px_per_unit = _px_per_unit(solver.problem)
         self._arrays = None
 
     def solve_row(self, i, c, neighbour):
@@ -313,10 +413,12 @@ class _Propagation:
         if self.solver.fast_rows and len(self.solver.problem.other) <= 1:
             for direction in (-1, 1):
                 rows = np.arange(start + direction, height if direction > 0 else -1, direction)
-                self._compiled(rows, start, informative)
+                self._compiled(rows, start, informative, _trust_state(out.trajectory[start], start))
             return
+        dims = len(self.step)
         for direction in (-1, 1):
             c_prev, prev = out.trajectory[start], start
+            trust = _trust_state(out.trajectory[start], start)
             for i in range(start + direction, height if direction > 0 else -1, direction):
                 if not informative[i]:
                     out.row_state[i] = 2
@@ -325,11 +427,18 @@ class _Propagation:
                 if c is None or not out.valid[i].any():
                     out.row_state[i] = 3
                     continue
+                c = np.asarray(c, np.float64)
+                predicted = np.empty(dims)
+                if _jumps(c, i, self.px_per_unit, trust, predicted):
+                    rows = np.arange(i, height if direction > 0 else -1, direction)
+                    again = self.solve_row(i, self._reanchor(rows, informative, c, predicted, trust), prev)
+                    c = c if again is None else np.asarray(again, np.float64)
+                _follow(c, i, trust)
                 out.trajectory[i] = c
                 out.row_state[i] = 1
                 c_prev, prev = c, i
 
-    def _compiled(self, rows, start, informative):
+    def _compiled(self, rows, start, informative, trust):
         """:func:`from_row`'s loop in compiled code (:func:`_propagate_rows`),
         returning to Python only to pre-warp a rotation band it needs."""
         solver, problem, out, space = self.solver, self.solver.problem, self.out, self.space
@@ -349,27 +458,28 @@ class _Propagation:
                 self._a = np.empty((k, problem.width), dtype=np.float32)
         arr = self._arrays
         lattice = _Lattice(arr["offsets"], arr["counts"], self.step, -1 if problem.ty is None else problem.ty,
-                           -1 if problem.tx is None else problem.tx, arr["other"])
+                           -1 if problem.tx is None else problem.tx, arr["other"], self.px_per_unit)
         capture = _Capture(problem.dist, problem.dist_valid, informative)
         outputs = _RowOutputs(out.registered, out.chi, out.valid, out.trajectory, out.row_state, out.row_gain,
                               arr["weights"], arr["centers"])
         settings = solver.settings(problem.width)
-        prev = start
-        pos = 0
+        prev, pos, c_prev = start, 0, out.trajectory[start].astype(np.float64)
+        anchor = np.empty((2, len(self.step)))
         while pos < len(rows):
             center_prev, w_prev = self.weights[prev]
             stack = problem.stack if problem.stack is not None else np.empty((1, 1, 1), np.float32)
             prewarp = _Prewarp(stack, arr["table"], arr["other_lo"], arr["band_lo"], problem.BAND, problem.pad,
                                problem.margin)
             reached, other_index, band, status = _propagate_rows(
-                prewarp, lattice, settings, capture, outputs, rows[pos:], prev, out.trajectory[prev].astype(np.float64),
-                center_prev, w_prev, self._a)
+                prewarp, lattice, settings, capture, outputs, rows[pos:], prev, c_prev, center_prev, w_prev, self._a,
+                trust, anchor)
             for i in rows[pos:pos + reached]:
                 if out.row_state[i] != 2:
                     self.weights[i] = (arr["centers"][i].copy(), arr["weights"][i].copy())
                 if out.row_state[i] == 1:
                     prev = i
             pos += reached
+            c_prev = out.trajectory[prev].astype(np.float64)
             if status == 1:
                 index = np.zeros(len(self.step), np.int64)
                 if arr["other"] >= 0:
@@ -389,6 +499,24 @@ class _Propagation:
                 else:
                     out.trajectory[i], out.row_state[i], prev = c, 1, i
                 pos += 1
+            elif status == 3:
+                c_prev = self._reanchor(rows[pos:], informative, anchor[0], anchor[1], trust)
+
+    def _reanchor(self, rows, informative, own, predicted, trust):
+        """The path re-anchored at ``rows[0]`` (see :data:`DRIFT_PX`): a block of
+        the informative rows from it on solved jointly on a grid that holds the
+        row's own pose and the prediction; ``trust`` is set to the block's
+        centroid there (flagged: that row is not checked again).  Returns the
+        centroid, the centre of the row's next grid."""
+        block = [r for r in rows[:4 * self.solver.params.block_rows] if informative[r]][:self.solver.params.block_rows]
+        uncertainty = np.abs(own - predicted) + self.step
+        center, _, _ = _refine_start(self.solver, predicted, np.sort(block), uncertainty, iterations=2,
+                                     stride=np.ones(len(self.step)))
+        dims = len(self.step)
+        trust[:dims] = center
+        trust[2 * dims] = rows[0]
+        trust[2 * dims + 1] = 1.0
+        return np.asarray(center, np.float64)
 
     def _refill_table(self):
         """The compiled loop's (rotation, band) -> slot table from the problem's slots."""
