@@ -3,7 +3,8 @@
 from ._detect import VERSION, DetectConfig, DetectResult, default_overlap, detect
 from ._evaluate import Evaluation, evaluate
 from ._report import write_report
+from ._survey import SurveyResult, survey
 from ._synth import PairPaths, read_truth, synth, write_pair
 
 __all__ = ["VERSION", "DetectConfig", "DetectResult", "Evaluation", "PairPaths", "default_overlap", "detect", "evaluate",
-           "read_truth", "synth", "write_pair", "write_report"]
+           "read_truth", "survey", "SurveyResult", "synth", "write_pair", "write_report"]

@@ -162,6 +162,7 @@ def write_capture(path, scene, spec, *, noise=0.002, georeferenced=True, offset_
     import cv2
 
     path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     image, mask, mask_reference, trajectory = _capture(scene, spec, noise)
     geo = scene_geo(spec.origin_yx)
     a, b, c, d, e, f = geo.transform

@@ -45,7 +45,7 @@ from rsmb.ops import ChangeParams, InputError, RegistrationParams
 from . import _tasks
 from ._tasks import _specs, _tile_done, _tile_results
 from ._fuse import _agreement, _fuse, _outliers
-from ._outputs import _check_outputs, _finished, _write_geotiffs
+from ._outputs import _check_outputs, _finished, write_products
 from ._scheduler import check_scheduler, open_runner
 
 __all__ = ["DetectConfig", "DetectResult", "detect", "default_overlap", "default_tile", "VERSION"]
@@ -432,7 +432,7 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff):
         # the reference-grid mask is on the reference's grid when compared pixel for pixel, else on the
         # capture's nominal grid
         reference_geo = plan.references[0].geo if plan.pairing.mode == "pixel" else plan.distorted.geo
-        _write_geotiffs(final, geotiff, reference_geo, plan.distorted.geo)
+        write_products(final, geotiff, reference_geo, plan.distorted.geo, overwrite=overwrite)
     log.info("wrote %s: %d changed px (threshold %.3f), %.2f MP/s", final, result.changed_pixels, result.threshold,
              result.megapixels_per_s)
 

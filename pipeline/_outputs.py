@@ -1,11 +1,13 @@
 """The outputs of a detect run: checked before any work starts (writable, not
 there already without ``--overwrite``), a finished store recognised for
-``--resume``, and the GeoTIFFs written aside and renamed into place."""
+``--resume``, and the rasters as Cloud-Optimised GeoTIFFs, written aside and
+renamed into place."""
 
 import logging
 import os
-import tempfile
 from pathlib import Path
+
+import numpy as np
 
 from rsmb import tiles
 from rsmb.ops import InputError
@@ -16,6 +18,7 @@ log = logging.getLogger("rsmb")
 
 
 GEOTIFFS = ("change_mask.tif", "change_mask_reference.tif", "change_score.tif")
+MASK_NODATA = 255
 
 
 def _check_outputs(output, geotiff, overwrite):
@@ -50,22 +53,35 @@ def _finished(output, key):
     return attrs["summary"]
 
 
-def _write_geotiffs(store, directory, reference_geo, capture_geo):
-    """The masks and the score as GeoTIFFs, each written aside and renamed
-    into place."""
+class _Known:
+    """``array[rows]`` (strips of a zarr array) with ``fill`` where the
+    registration is unknown (``registered`` is NaN): the no-data of a raster
+    product."""
+
+    def __init__(self, array, registered, fill):
+        self.array, self.registered, self.fill = array, registered, fill
+        self.shape, self.dtype = array.shape, array.dtype
+
+    def __getitem__(self, key):
+        values = np.asarray(self.array[key])
+        return np.where(np.isfinite(self.registered[key]), values, self.fill).astype(self.dtype)
+
+
+def write_products(store, directory, reference_geo, capture_geo, *, overwrite=False):
+    """The masks and the score as Cloud-Optimised GeoTIFFs in ``directory``
+    (:data:`GEOTIFFS`: overviews, band descriptions, no-data 255 for the masks
+    and NaN for the score where the registration is unknown), each written
+    aside and renamed into place.  Returns the paths."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     group = tiles.open_result_store(store)
-    sources = {"change_mask.tif": ("change_mask", capture_geo),
-               "change_mask_reference.tif": ("change_mask_reference", reference_geo),
-               "change_score.tif": ("change_score", capture_geo)}
+    registered = group["registered"]
+    products = {"change_mask.tif": ("change_mask", capture_geo, MASK_NODATA),
+                "change_mask_reference.tif": ("change_mask_reference", reference_geo, MASK_NODATA),
+                "change_score.tif": ("change_score", capture_geo, float("nan"))}
+    paths = []
     for name in GEOTIFFS:
-        array, geo = sources[name]
-        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tif", dir=directory)
-        os.close(fd)
-        try:
-            tiles.write_geotiff(tmp, group[array], geo)
-            os.replace(tmp, directory / name)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
+        array, geo, nodata = products[name]
+        paths.append(tiles.write_cog(directory / name, _Known(group[array], registered, nodata), geo, nodata=nodata,
+                                     description=array, overwrite=overwrite))
+    return paths

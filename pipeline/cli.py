@@ -338,6 +338,48 @@ def report(store, out_dir, max_pixels, overwrite):
     click.echo(f"wrote {index}")
 
 
+@cli.command()
+@click.argument("references", nargs=-1, required=True, type=click.Path())
+@click.option("--captures", required=True, help="Glob of the night's captures ('**' recurses); quote it.")
+@click.option("-o", "--output", "out_dir", required=True, type=click.Path(),
+              help="The survey's folder: one folder per capture, ledger.sqlite, nights/, index.html.")
+@registration_options
+@tile_option("Core tile side, pixels (at least 32) [default: detect's].")
+@click.option("--overlap", type=click.IntRange(min=0), default=None,
+              help="Tile halo, pixels. Default: the largest displacement the search range allows.")
+@runtime_options
+@click.option("--parallel", type=click.IntRange(min=1), default=2, show_default=True,
+              help="Captures in flight at once (their tasks share the scheduler's workers).")
+@click.option("--dry-run", is_flag=True, help="Say what would run and why; write nothing.")
+@click.option("--no-report", is_flag=True, help="Skip each capture's HTML report.")
+@click.option("--json", "as_json", is_flag=True, help="Print the night's summary as JSON on stdout.")
+@click.pass_context
+def survey(ctx, references, captures, out_dir, axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi,
+           threshold, min_area, focal, tile_size, overlap, scheduler, workers, worker_timeout, parallel, dry_run,
+           no_report, as_json):
+    """A night of georeferenced captures (--captures GLOB) against REFERENCE files.
+
+    Each capture gets a folder with its store, changes.gpkg, COGs, thumbnail
+    and report; a capture done with the same inputs and parameters is skipped.
+    Exit code 3 when some captures failed (the rest finished)."""
+    from ._survey import survey as run
+
+    config = build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold,
+                          min_area, focal, tile_size, overlap)
+    result = run(references, captures, out_dir, config=config, scheduler=scheduler, workers=workers,
+                 parallel=parallel, dry_run=dry_run, worker_timeout=worker_timeout, report=not no_report)
+    if as_json:
+        click.echo(json.dumps(result.as_dict(), indent=2))
+    else:
+        for c in result.captures:
+            detail = f" ({c.changes} changes)" if c.status == "done" else (f": {c.reason}" if c.reason else "")
+            click.echo(f"{c.status:10s} {c.capture}{detail}")
+        click.echo(f"{result.done} done, {result.skipped} skipped, {result.failed} failed"
+                   + (f"; {result.index}" if result.index else ""))
+    if result.failed:
+        ctx.exit(3)
+
+
 @cli.command("run")
 @click.argument("workflow", type=click.Path(dir_okay=False))
 @click.option("--scheduler", default=None, callback=_check_scheduler, help="Override the workflow's scheduler.")

@@ -14,7 +14,7 @@ imported on first use, so ``import rsmb.ops`` stays light.
 
 import importlib
 
-__all__ = ["detect", "synth", "evaluate", "report", "DetectConfig", "DetectResult", "Evaluation", "PairPaths",
+__all__ = ["detect", "survey", "synth", "evaluate", "report", "SurveyResult", "DetectConfig", "DetectResult", "Evaluation", "PairPaths",
            "__version__"]
 
 # public name -> (module, attribute)
@@ -27,6 +27,8 @@ _API = {
     "evaluate": ("rsmb.pipeline._evaluate", "evaluate"),
     "Evaluation": ("rsmb.pipeline._evaluate", "Evaluation"),
     "report": ("rsmb.pipeline._report", "write_report"),
+    "survey": ("rsmb.pipeline._survey", "survey"),
+    "SurveyResult": ("rsmb.pipeline._survey", "SurveyResult"),
 }
 
 

@@ -18,6 +18,7 @@ from ._io import (
     ImageInfo,
     Raster,
     check_same_shape,
+    probe_header,
     probe_image,
     read_image,
     read_window,
@@ -37,6 +38,7 @@ from ._store import (
     open_result_store,
     partial_path,
     repair_interrupted_overwrite,
+    update_attrs,
     write_array,
 )
 
@@ -59,6 +61,7 @@ __all__ = [
     "ImageInfo",
     "Raster",
     "as_float01",
+    "probe_header",
     "probe_image",
     "read_image",
     "read_window",
@@ -81,5 +84,6 @@ __all__ = [
     "open_result_store",
     "partial_path",
     "repair_interrupted_overwrite",
+    "update_attrs",
     "jsonable",
 ]

@@ -42,6 +42,7 @@ __all__ = [
     "finalize_result_store",
     "open_result_store",
     "partial_path",
+    "update_attrs",
     "write_array",
 ]
 
@@ -400,6 +401,15 @@ def finalize_result_store(
         raise
     shutil.rmtree(old, ignore_errors=True)
     return final
+
+
+def update_attrs(path: str | os.PathLike, updates: dict[str, Any]) -> None:
+    """Update the root attributes of a finished store (``updates`` through
+    :func:`jsonable`) and consolidate its metadata again."""
+    import zarr
+
+    zarr.open_group(store=str(path), mode="r+").attrs.update(jsonable(updates))
+    _consolidate(Path(path))
 
 
 def abort_result_store(tmp_group_or_path) -> None:

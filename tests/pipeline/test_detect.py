@@ -97,8 +97,17 @@ def test_geotiff_in_geotiff_out(tmp_path, geotiff_pair_files):
             assert out.crs == crs
             assert out.transform.almost_equals(transform)
             assert out.shape == (256, 256)
+    arrays = read_store(store)[0]
+    unknown = np.isnan(arrays["registered"])
     with rasterio.open(gtiff / "change_mask.tif") as out:
-        assert np.array_equal(out.read(1), read_store(store)[0]["change_mask"])
+        mask = out.read(1)
+        assert out.nodata == 255 and out.descriptions == ("change_mask",)
+        assert np.array_equal(mask == 255, unknown)  # no-data where the registration is unknown
+        assert np.array_equal(mask[~unknown], arrays["change_mask"][~unknown])
+    with rasterio.open(gtiff / "change_score.tif") as out:
+        score = out.read(1)
+        assert np.array_equal(np.isnan(score), unknown)
+        assert np.array_equal(score[~unknown], arrays["change_score"][~unknown])
     ds = xr.open_zarr(store)
     assert ds.attrs["proj:code"] == "EPSG:32618" and ds["change_mask"].dims == ("y", "x")
 

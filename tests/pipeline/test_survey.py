@@ -1,0 +1,217 @@
+"""``rsmb survey``: a night of georeferenced captures against a reference mosaic
+(DESIGN.md, "Survey archives"), on archives these tests build."""
+
+import json
+import os
+import shutil
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from rsmb import ops
+from rsmb.pipeline._archive import CaptureSpec, _write, scene_geo, write_capture, write_reference
+from rsmb.pipeline.cli import main
+
+from .conftest import read_store
+
+GOOD = [(100, 100), (300, 420), (420, 150)]
+
+
+def _scene():
+    return (0.05 + 0.7 * ops.aerial_scene((768, 768), seed=5)).astype(np.float32)
+
+
+def _night(root, scene, *, bad=True):
+    """A reference mosaic of two files and a night folder: three good captures
+    in flight1/, and with ``bad`` four bad ones in flight2/."""
+    references = write_reference(root / "reference", scene, split=2)
+    night = root / "incoming"
+    for k, origin in enumerate(GOOD):
+        write_capture(night / "flight1" / f"cap{k}.tif", scene, CaptureSpec(origin, (256, 256), seed=10 + k,
+                                                                            changes=3))
+    if bad:
+        write_capture(night / "flight2" / "elsewhere.tif", scene, CaptureSpec((100, 100), (256, 256), seed=20),
+                      offset_m=(9000.0, 0.0))
+        write_capture(night / "flight2" / "nogeo.tif", scene, CaptureSpec((100, 100), (256, 256), seed=21),
+                      georeferenced=False)
+        _write(night / "flight2" / "flat.tif", np.full((256, 256), 0.4, np.float32), scene_geo((100, 100)))
+        truncated = night / "flight2" / "truncated.tif"
+        data = (night / "flight1" / "cap0.tif").read_bytes()
+        truncated.write_bytes(data[:len(data) // 2])
+    return references, night
+
+
+def _survey(references, night, out, *extra):
+    return main(["-q", "survey", *map(str, references), "--captures", str(night / "**" / "*.tif"), "-o", str(out),
+                 "--no-report", *extra])
+
+
+@pytest.fixture(scope="module")
+def first_night(tmp_path_factory):
+    root = tmp_path_factory.mktemp("survey")
+    references, night = _night(root, _scene())
+    out = root / "out"
+    start = time.perf_counter()
+    code = main(["-q", "survey", *map(str, references), "--captures", str(night / "**" / "*.tif"), "-o", str(out),
+                 "--json"])
+    return root, references, night, out, code, time.perf_counter() - start
+
+
+def _summary(out):
+    nights = sorted((out / "nights").glob("*.json"))
+    return json.loads(nights[-1].read_text())
+
+
+def test_bad_captures_fail_and_the_rest_finish(first_night, capsys):
+    root, references, night, out, code, _ = first_night
+    assert code == 3
+    summary = _summary(out)
+    status = {os.path.basename(c["capture"]): c for c in summary["captures"]}
+    assert summary["done"] == 3 and summary["failed"] == 4 and summary["skipped"] == 0
+    for name in ("cap0.tif", "cap1.tif", "cap2.tif"):
+        c = status[name]
+        assert c["status"] == "done" and c["changes"] >= 1 and c["changed_m2"] > 0
+        assert set(c) == {"capture", "status", "reason", "reference", "output", "vectors", "changes", "changed_m2",
+                          "seconds"}
+    assert "does not overlap" in status["elsewhere.tif"]["reason"]
+    assert "not georeferenced" in status["nogeo.tif"]["reason"]
+    assert "constant" in status["flat.tif"]["reason"]
+    assert "cannot read" in status["truncated.tif"]["reason"]
+    assert not (out / "flight2").exists() and not (out / ".partial").exists()
+
+
+def test_each_capture_folder_holds_its_products(first_night):
+    import pyogrio
+    import rasterio
+
+    root, references, night, out, _, _ = first_night
+    folder = out / "flight1" / "cap1"
+    assert sorted(p.name for p in folder.iterdir()) == ["change_mask.tif", "change_mask_reference.tif",
+                                                       "change_score.tif", "changes.gpkg", "changes.zarr", "report",
+                                                       "thumbnail.png"]
+    with rasterio.open(night / "flight1" / "cap1.tif") as src:
+        crs, bounds = src.crs, src.bounds
+    info = pyogrio.read_info(folder / "changes.gpkg", layer="changes", force_total_bounds=True)
+    arrays, attrs = read_store(folder / "changes.zarr")
+    assert info["crs"] in (crs.to_string(), f"EPSG:{crs.to_epsg()}")
+    assert info["features"] == attrs["summary"]["components"] >= 1
+    _, _, geometry, fields = pyogrio.raw.read(folder / "changes.gpkg", layer="changes")
+    assert fields[0].sum() == (arrays["change_mask"] > 0).sum()  # pixels
+    xmin, ymin, xmax, ymax = info["total_bounds"]
+    assert bounds.left <= xmin and xmax <= bounds.right and bounds.bottom <= ymin and ymax <= bounds.top
+    for name, nodata in (("change_mask.tif", 255), ("change_score.tif", None)):
+        with rasterio.open(folder / name) as ds:
+            assert ds.crs == crs and ds.descriptions[0] == name[:-4]
+            assert (ds.nodata == nodata) if nodata is not None else np.isnan(ds.nodata)
+            assert ds.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"
+    assert attrs["summary"]["output"] == str(folder / "changes.zarr")
+
+
+def test_the_index_lists_every_capture_with_its_thumbnail(first_night):
+    root, references, night, out, _, _ = first_night
+    page = (out / "index.html").read_text()
+    for name in ("cap0", "cap1", "cap2", "elsewhere", "nogeo", "flat", "truncated"):
+        assert f"{name}.tif" in page
+    assert page.count("<img src='flight1/cap") == 3 and "http" not in page
+
+
+def test_a_rerun_redoes_nothing(first_night):
+    root, references, night, out, _, first_seconds = first_night
+    stamps = {p: p.stat().st_mtime_ns for p in (out / "flight1").rglob("*.tif")}
+    assert _survey(references, night, out) == 3  # the bad ones are retried and fail again
+    summary = _summary(out)
+    assert summary["skipped"] == 3 and summary["done"] == 0 and summary["failed"] == 4
+    assert all(c["output"] and c["changes"] is not None for c in summary["captures"] if c["status"] == "skipped")
+    assert stamps == {p: p.stat().st_mtime_ns for p in (out / "flight1").rglob("*.tif")}
+
+
+def test_new_and_changed_captures_run_alone(tmp_path):
+    scene = _scene()
+    references, night = _night(tmp_path, scene, bad=False)
+    out = tmp_path / "out"
+    assert _survey(references, night, out) == 0
+    write_capture(night / "flight3" / "new.tif", scene, CaptureSpec((200, 300), (256, 256), seed=31, changes=2))
+    write_capture(night / "flight1" / "cap1.tif", scene, CaptureSpec(GOOD[1], (256, 256), seed=32, changes=2))
+    assert _survey(references, night, out, "--json") == 0
+    by = {os.path.basename(c["capture"]): c for c in _summary(out)["captures"]}
+    assert by["new.tif"]["status"] == "done" and by["cap1.tif"]["status"] == "done"
+    assert by["cap0.tif"]["status"] == "skipped" and by["cap2.tif"]["status"] == "skipped"
+    rows = sqlite3.connect(out / "ledger.sqlite").execute(
+        "SELECT capture, status, reason FROM runs ORDER BY id").fetchall()
+    assert [r for r in rows if r[0].endswith("cap1.tif")][-1][2].startswith("content changed")
+
+
+def _arrays_of(out):
+    """Every array of every capture store, and every COG's pixels."""
+    import rasterio
+
+    data = {}
+    for store in sorted(out.rglob("changes.zarr")):
+        for name, values in read_store(store)[0].items():
+            data[(str(store.relative_to(out)), name)] = values
+    for cog in sorted(out.rglob("*.tif")):
+        with rasterio.open(cog) as ds:
+            data[(str(cog.relative_to(out)), "pixels")] = ds.read(1)
+    return data
+
+
+def test_a_night_killed_midway_finishes_as_if_never_interrupted(tmp_path):
+    scene = _scene()
+    references, night = _night(tmp_path, scene, bad=False)
+    whole = tmp_path / "whole"
+    assert _survey(references, night, whole) == 0
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "rsmb", "-q", "survey", *map(str, references), "--captures",
+           str(night / "**" / "*.tif"), "-o", str(out), "--no-report", "--parallel", "1"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 120
+    while not (out / "flight1" / "cap0").exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert (out / "flight1" / "cap0").exists() and not (out / "flight1" / "cap2").exists()
+    assert _survey(references, night, out) == 0
+    rows = sqlite3.connect(out / "ledger.sqlite").execute("SELECT capture, status FROM runs").fetchall()
+    done = [c for c, s in rows if s == "done"]
+    assert sorted(done) == sorted(set(done)) and len(done) == 3  # nothing done twice
+    a, b = _arrays_of(whole), _arrays_of(out)
+    assert a.keys() == b.keys()
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=str(key))
+
+
+def test_dry_run_writes_nothing_and_says_why(tmp_path, capsys):
+    references, night = _night(tmp_path, _scene(), bad=False)
+    out = tmp_path / "out"
+    assert _survey(references, night, out, "--dry-run") == 0
+    assert not out.exists()
+    text = capsys.readouterr().out
+    assert text.count("would run") == 3 and "new capture" in text
+
+
+def test_bad_invocations_and_an_empty_night(tmp_path, capsys):
+    references, night = _night(tmp_path, _scene(), bad=False)
+    nogeo = tmp_path / "nogeo.png"
+    shutil.copy(night / "flight1" / "cap0.tif", tmp_path / "x.tif")
+    import cv2
+
+    cv2.imwrite(str(nogeo), np.zeros((64, 64), np.uint8) + 7)
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    for args, named in ((["survey", str(nogeo), "--captures", "*.tif", "-o", str(tmp_path / "o")], str(nogeo)),
+                        (["survey", str(references[0]), "--captures", "*.tif", "-o", str(afile)], str(afile)),
+                        (["survey", str(tmp_path / "missing.tif"), "--captures", "*.tif", "-o", str(tmp_path / "o")],
+                         "missing.tif"),
+                        (["survey", str(references[0]), "-o", str(tmp_path / "o")], "--captures")):
+        assert main(args) == 2, args
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and named in err[0], (args, err)
+    assert not (tmp_path / "o").exists()
+    assert main(["-q", "survey", str(references[0]), "--captures", str(tmp_path / "none" / "*.tif"), "-o",
+                 str(tmp_path / "empty"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == {"captures": [], "done": 0, "skipped": 0, "failed": 0}
