@@ -186,7 +186,7 @@ def _write_overlay(group, grid, factor, path):
     h, w = gray.shape
     rgb = overlay_rgb(gray, mask, _grid_lines(grid["row_edges"], factor, h),
                       _grid_lines(grid["col_edges"], factor, w))
-    Image.fromarray(rgb, mode="RGB").save(path, optimize=True)
+    Image.fromarray(rgb, mode="RGB").save(path, compress_level=3)
     return {"size": (w, h)}
 
 

@@ -41,6 +41,10 @@ __all__ = ["SurveyResult", "CaptureResult", "survey", "find_captures"]
 log = logging.getLogger("rsmb")
 
 PARTIAL = ".partial"
+#: Default tile side of a survey: a capture of about a megapixel is one tile,
+#: so it pays the per-tile start once; the night's concurrency, not the tiles
+#: of one capture, keeps the cores busy.
+SURVEY_TILE = 1024
 _WILDCARDS = set("*?[")
 
 
@@ -174,6 +178,7 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         The survey's folder: one folder per capture, ``ledger.sqlite``,
         ``nights/<UTC time>.json`` and ``index.html``.
     config : DetectConfig, optional
+        Its ``tile`` defaults to :data:`SURVEY_TILE`.
     scheduler, workers, worker_timeout
         As for :func:`detect`; one runner serves the whole night.
     parallel : int
@@ -194,6 +199,8 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         is ``failed`` in the result).
     """
     config = config or DetectConfig()
+    if config.tile is None:  # captures run side by side: one large tile each keeps the cores busy
+        config = dataclasses.replace(config, tile=SURVEY_TILE)
     references = [os.path.abspath(r) for r in references]
     out = Path(out_dir).absolute()
     _check_invocation(references, out, scheduler)

@@ -26,7 +26,7 @@ def write_thumbnail(group, path, *, side=THUMBNAIL):
     factor = max(1, -(-max(h, w) // side))
     rgb = overlay_rgb(block_reduce(group["registered"], factor, "mean"),
                       block_reduce(group["change_mask"], factor, "max"))
-    Image.fromarray(rgb, mode="RGB").save(path, optimize=True)
+    Image.fromarray(rgb, mode="RGB").save(path, compress_level=3)
     return Path(path)
 
 

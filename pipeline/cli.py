@@ -344,7 +344,7 @@ def report(store, out_dir, max_pixels, overwrite):
 @click.option("-o", "--output", "out_dir", required=True, type=click.Path(),
               help="The survey's folder: one folder per capture, ledger.sqlite, nights/, index.html.")
 @registration_options
-@tile_option("Core tile side, pixels (at least 32) [default: detect's].")
+@tile_option("Core tile side, pixels (at least 32) [default: 1024: captures run side by side, each in few tiles].")
 @click.option("--overlap", type=click.IntRange(min=0), default=None,
               help="Tile halo, pixels. Default: the largest displacement the search range allows.")
 @runtime_options

@@ -1,7 +1,6 @@
 """The tiled pipeline: tiled equals whole, seams, georeferencing, resume, schedulers."""
 
 import os
-import shutil
 import signal
 import subprocess
 import sys
