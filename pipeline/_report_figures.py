@@ -46,7 +46,8 @@ def write_figures(group, attrs, out, factor):
     figures : dict
         File name -> ``{"size": (width, height)}`` in PNG pixels (and ``"vmax"``
         for the score figure); ``agreement.png`` is missing when the store has
-        no ``tile_agreement``.
+        no ``tile_agreement``, both it and ``gain.png`` for a store of one tile
+        (its gain is in the summary; one tile agrees with itself).
     score_factor : int
         Downsampling factor of the score figure (at least ``factor``; the figure
         shows at most about 1024 x 1024 values).
@@ -54,9 +55,10 @@ def write_figures(group, attrs, out, factor):
     figures = {}
     figures["overlay.png"] = _write_overlay(group, attrs["tile_grid"], factor, out / "overlay.png")
     figures["trajectory.png"] = _write_trajectory(group, attrs, out / "trajectory.png")
-    figures["gain.png"] = _write_gain(group, attrs, out / "gain.png")
-    if "tile_agreement" in group:
-        figures["agreement.png"] = _write_agreement(group, attrs, out / "agreement.png")
+    if list(attrs["tile_grid"]["tiles"]) != [1, 1]:  # one tile: its gain is in the summary, no agreement
+        figures["gain.png"] = _write_gain(group, attrs, out / "gain.png")
+        if "tile_agreement" in group:
+            figures["agreement.png"] = _write_agreement(group, attrs, out / "agreement.png")
     shape = tuple(group["change_score"].shape)
     score_factor = max(factor, downsample_factor(shape, _SCORE_PIXELS))
     figures["change_score.png"] = _write_score(group, attrs, score_factor, out / "change_score.png")

@@ -172,11 +172,13 @@ def _captions(attrs, factor, score_factor):
     }
 
 
-def _figures_html(figures, captions):
+def _figures_html(figures, captions, one_tile=False):
     parts = []
     for name in FIGURES:
         if name not in figures:
-            parts.append(f"<p>{_esc(name)}: not available (the store has no data for it).</p>")
+            why = ("one tile: its gain is in the summary" if name in ("gain.png", "agreement.png")
+                   and one_tile else "the store has no data for it")
+            parts.append(f"<p>{_esc(name)}: not available ({why}).</p>")
             continue
         w, h = figures[name]["size"]
         cls = ' class="pixels"' if name == "overlay.png" else ""
@@ -197,7 +199,8 @@ def html_page(store, attrs, group, figures, factor, score_factor):
         f"<h1>rsmb report: {_esc(store.name)}</h1>", f'<p class="meta">{meta}</p>',
         "<h2>Inputs</h2>", _inputs_table(attrs),
         "<h2>Summary</h2>", _summary_table(summary), _row_state_table(group),
-        "<h2>Figures</h2>", _figures_html(figures, _captions(attrs, factor, score_factor)),
+        "<h2>Figures</h2>", _figures_html(figures, _captions(attrs, factor, score_factor),
+                                             list(attrs.get("tile_grid", {}).get("tiles", [])) == [1, 1]),
         "<h2>Timings</h2>", _timings_table(summary.get("timings") or {}),
         "<h2>Parameters</h2>", _table(param_rows, ["parameter", "value"]),
         _geo_section(attrs),

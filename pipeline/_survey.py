@@ -163,7 +163,7 @@ def _parameters(config):
     return tiles.jsonable({"config": config, "kernels": ops.KERNEL_VERSION})
 
 
-def survey(references, captures, out_dir, *, config=None, scheduler="threads", workers=None, parallel=2,
+def survey(references, captures, out_dir, *, config=None, scheduler="threads", workers=None, parallel=None,
            dry_run=False, worker_timeout=60.0, report=True):
     """Run a night: every capture the glob ``captures`` finds, against the
     georeferenced reference set ``references`` (DESIGN.md, "Survey archives").
@@ -181,8 +181,10 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         Its ``tile`` defaults to :data:`SURVEY_TILE`.
     scheduler, workers, worker_timeout
         As for :func:`detect`; one runner serves the whole night.
-    parallel : int
-        Captures in flight at once.
+    parallel : int, optional
+        Captures in flight at once; default one more than the cores of this
+        machine (a capture's own Python work, products and report, overlaps
+        the others' tasks).
     dry_run : bool
         Say what would run and why; write nothing.
     report : bool
@@ -278,7 +280,7 @@ def _night(ledger, found, out, references, reference_shas, parameters, night, co
     total = len(todo)
     with open_runner(run["scheduler"], workers=run["workers"], shared=True, progress=False,
                      worker_timeout=run["worker_timeout"]) as runner, \
-            ThreadPoolExecutor(max(1, int(run["parallel"]))) as driver:
+            ThreadPoolExecutor(run["parallel"] or (os.cpu_count() or 1) + 1) as driver:
         futures = {driver.submit(_run_capture, capture, name, out, references, config, runner, run["report"]):
                    (capture, name, run_id, why) for capture, name, run_id, why in todo}
         for count, future in enumerate(as_completed(futures), 1):

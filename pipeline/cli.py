@@ -348,8 +348,8 @@ def report(store, out_dir, max_pixels, overwrite):
 @click.option("--overlap", type=click.IntRange(min=0), default=None,
               help="Tile halo, pixels. Default: the largest displacement the search range allows.")
 @runtime_options
-@click.option("--parallel", type=click.IntRange(min=1), default=2, show_default=True,
-              help="Captures in flight at once (their tasks share the scheduler's workers).")
+@click.option("--parallel", type=click.IntRange(min=1), default=None,
+              help="Captures in flight at once (their tasks share the scheduler's workers) [default: cores + 1].")
 @click.option("--dry-run", is_flag=True, help="Say what would run and why; write nothing.")
 @click.option("--no-report", is_flag=True, help="Skip each capture's HTML report.")
 @click.option("--json", "as_json", is_flag=True, help="Print the night's summary as JSON on stdout.")

@@ -16,6 +16,7 @@ Errors are :class:`InputError` with one line that starts with the path.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import warnings
@@ -50,7 +51,18 @@ def resolve_slice(index: slice | None, size: int, label: str) -> tuple[int, int]
 
 
 def sha256_file(path: str) -> str:
-    """Hex SHA-256 of a file's bytes, read in blocks of 1 MiB."""
+    """Hex SHA-256 of a file's bytes, read in blocks of 1 MiB.  Remembered per
+    process for a file of the same path, size, inode and modification time: a
+    night hashes each file of a reference mosaic once, not once per capture."""
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read file ({one_line(exc)})") from exc
+    return _sha256_file(os.path.abspath(path), st.st_size, st.st_ino, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=4096)
+def _sha256_file(path: str, size: int, inode: int, mtime_ns: int) -> str:
     digest = hashlib.sha256()
     try:
         with open(path, "rb") as fh:
