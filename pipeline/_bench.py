@@ -14,6 +14,8 @@ Sections (``--sections``):
   subprocess, with detect's default tiles and with 512-px tiles: peak resident
   memory, throughput against the per-tile kernel rate, tasks per tile.
 - ``gain``: a smooth gain ramp 0.7 -> 1.3: per-tile gain error and F-measure.
+- ``survey``: georeferenced pairing on real aerial images, and a night of
+  captures against one large detect (:mod:`pipeline._bench_survey`).
 """
 
 import json
@@ -36,7 +38,7 @@ from ._synth import write_pair
 
 __all__ = ["SECTIONS", "run_bench"]
 
-SECTIONS = ("oracle", "speed", "real", "scale", "gain")
+SECTIONS = ("oracle", "speed", "real", "scale", "gain", "survey")
 PAPER_INPLANE = dict(axes=("tx", "ty", "rz"), half_width=(3.0, 3.0, 2.0), step=(1.0, 1.0, 0.5))
 
 
@@ -323,4 +325,8 @@ def run_bench(*, sections=SECTIONS, data=None, quick=False, workdir=None, sizes=
                                            tiles=(tile,) if tile else (None, 512))
         if "gain" in sections:
             results["gain"] = bench_gain(tmp, size=512 if quick else 2048, workers=workers)
+        if "survey" in sections:
+            from ._bench_survey import bench_survey
+
+            results["survey"] = bench_survey(data, tmp, quick=quick)
     return results

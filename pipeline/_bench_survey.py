@@ -1,0 +1,161 @@
+"""The ``survey`` section of ``rsmb bench``: georeferenced pairing on real
+aerial images, and a night's throughput against one large detect.
+
+- Pairing: a real aerial photograph (``--data``'s ``aerial/``, else a
+  procedural scene) is the ground and the reference; a 512 x 512 capture of a
+  window of it (the forward model, pasted changes) is run against the
+  reference as a larger mosaic, split over two files it straddles, resampled
+  to finer and coarser pixels, reprojected to EPSG:3857 and EPSG:4326, and
+  partly covered; its F-measure is compared with the hand-cut same-grid pair.
+  A reference elsewhere and a capture 5 km away must exit 2.
+- Night: 8 captures of 1024 x 1024 from a 3072 x 3072 scene through ``rsmb
+  survey`` in a subprocess (command start to summary written), beside ``rsmb
+  detect`` on one 4096 x 4096 pair in the same run; then the same night again
+  (everything skipped).
+"""
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from rsmb import ops
+from rsmb import tiles
+
+from ._archive import CaptureSpec, write_capture, write_reference
+from ._detect import detect
+from ._evaluate import evaluate
+from ._synth import write_pair
+
+__all__ = ["bench_survey"]
+
+PAIRING_CASES = {
+    "larger mosaic": {},
+    "two files, straddled": {"split": 2},
+    "finer pixels (0.4 m)": {"pixel": 0.4},
+    "coarser pixels (0.7 m)": {"pixel": 0.7},
+    "EPSG:3857": {"crs": "EPSG:3857"},
+    "EPSG:4326": {"crs": "EPSG:4326"},
+}
+
+
+def _echo(text):
+    print(text, flush=True)
+
+
+def _scene(data, shape, seed=5):
+    """A real aerial photograph scaled to ``shape`` (bicubic) with its 0.5 and
+    99.5 percentiles at 0.05 and 0.75, else a procedural scene."""
+    import cv2
+
+    images = sorted(Path(data, "aerial").glob("*.png")) if data else []
+    if not images:
+        return (0.05 + 0.7 * ops.aerial_scene(shape, seed=seed)).astype(np.float32), "procedural"
+    image = tiles.read_image(images[0]).data
+    image = cv2.resize(image, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
+    lo, hi = np.percentile(image, [0.5, 99.5])
+    scene = np.clip(0.05 + 0.7 * (image - lo) / max(float(hi - lo), 1e-6), 0.0, 1.0).astype(np.float32)
+    return scene, f"aerial/{images[0].name}"
+
+
+def _f(store, truth, covered_only=False):
+    if not covered_only:
+        return evaluate(store, truth).changes
+    import cv2
+
+    arrays = tiles.open_result_store(store)
+    mask = arrays["change_mask"][:] > 0
+    truth_mask = cv2.imread(str(Path(truth, "change_mask.png")), cv2.IMREAD_UNCHANGED) > 0
+    return ops.confusion(mask, truth_mask, valid=np.isfinite(arrays["registered"][:]))
+
+
+def _rsmb(*args):
+    return subprocess.run([sys.executable, "-m", "rsmb", *map(str, args)], capture_output=True, text=True)
+
+
+def bench_pairing(data, workdir, *, size=512):
+    """Georeferenced pairing cases against the hand-cut pair."""
+    work = Path(workdir, "pairing")
+    scene, source = _scene(data, (1024, 1024))
+    spec = CaptureSpec((256, 300), (size, size), seed=7, changes=6, exposure=32.0)
+    cut = write_capture(work / "capture.tif", scene, spec, hand_cut=work / "cut")
+    truth = work / "capture.truth"
+    detect(cut.reference, cut.distorted, work / "cut.zarr")
+    base = _f(work / "cut.zarr", truth).f_measure
+    out = {"scene": source, "hand_cut_f": base, "cases": {}}
+    for name, kw in PAIRING_CASES.items():
+        references = write_reference(work / name.replace(" ", "_"), scene, **kw)
+        store = work / f"{len(out['cases'])}.zarr"
+        result = detect(references, work / "capture.tif", store)
+        f = _f(store, truth).f_measure
+        out["cases"][name] = {"f_measure": f, "delta": f - base, "coverage": result.reference_coverage}
+    references = write_reference(work / "partial", scene[:, :300 + size * 2 // 3])
+    result = detect(references, work / "capture.tif", work / "partial.zarr")
+    counts = _f(work / "partial.zarr", truth, covered_only=True)
+    out["cases"]["partial overlap"] = {"f_measure": counts.f_measure, "precision": counts.precision,
+                                       "recall": counts.recall, "coverage": result.reference_coverage}
+    far = write_reference(work / "far", scene[:200, :200])
+    moved = work / "moved.tif"
+    write_capture(moved, scene, spec, offset_m=(5000.0, 0.0))
+    codes = {"no overlap": _rsmb("detect", far[0], work / "capture.tif", "-o", work / "x.zarr"),
+             "5 km apart": _rsmb("detect", cut.reference, moved, "-o", work / "y.zarr")}
+    out["refused"] = {k: {"exit": p.returncode, "message": p.stderr.strip()} for k, p in codes.items()}
+    _echo(f"survey pairing ({source}, {size} x {size} capture): hand-cut same-grid pair F {base:.3f}")
+    for name, r in out["cases"].items():
+        extra = (f", precision {r['precision']:.3f}, recall {r['recall']:.3f} on the covered part"
+                 if "precision" in r else f" ({r['delta']:+.3f})")
+        _echo(f"  {name:24s} F {r['f_measure']:.3f}{extra}, coverage {r['coverage']:.2f}")
+    for name, r in out["refused"].items():
+        _echo(f"  {name:24s} exit {r['exit']}: {r['message']}")
+    return out
+
+
+def bench_night(data, workdir, *, captures=8, side=1024, detect_side=4096):
+    """A night of ``captures`` captures against one large detect, end to end."""
+    work = Path(workdir, "night")
+    scene, source = _scene(data, (3 * side, 3 * side))
+    references = write_reference(work / "reference", scene, split=2)
+    origins = [(r, c) for r in (side // 5, side + side // 10, 2 * side - side // 10)
+               for c in (side // 5, side + side // 10, 2 * side - side // 10)][:captures]
+    for k, origin in enumerate(origins):
+        write_capture(work / "incoming" / f"capture_{k}.tif", scene, CaptureSpec(origin, (side, side), seed=40 + k,
+                                                                                 changes=10, exposure=32.0))
+    megapixels = captures * side * side / 1e6
+    cmd = ["survey", *references, "--captures", work / "incoming" / "*.tif", "-o", work / "out", "--json"]
+    start = time.perf_counter()
+    first = _rsmb("-q", *cmd)
+    night_s = time.perf_counter() - start
+    summary = json.loads(first.stdout)
+    start = time.perf_counter()
+    again = json.loads(_rsmb("-q", *cmd).stdout)
+    rerun_s = time.perf_counter() - start
+    pair = ops.synthesize_pair((detect_side, detect_side), motion="inplane", seed=3, noise=0.002, exposure=32.0,
+                               changes=100)
+    ref, dist = write_pair(work / "large", pair, fmt="tif", overwrite=True)
+    start = time.perf_counter()
+    single = _rsmb("-q", "detect", ref, dist, "-o", work / "large.zarr")
+    detect_s = time.perf_counter() - start
+    scores = [evaluate(c["output"] + "/changes.zarr", Path(c["capture"]).with_suffix(".truth")).changes.f_measure
+              for c in summary["captures"] if c["status"] == "done"]
+    out = {"scene": source, "captures": captures, "side": side, "night_s": night_s,
+           "night_megapixels_per_s": megapixels / night_s, "done": summary["done"], "failed": summary["failed"],
+           "rerun_s": rerun_s, "rerun_skipped": again["skipped"], "detect_side": detect_side, "detect_s": detect_s,
+           "detect_megapixels_per_s": detect_side ** 2 / 1e6 / detect_s, "detect_exit": single.returncode,
+           "f_measure_min": min(scores) if scores else None}
+    out["ratio"] = out["night_megapixels_per_s"] / out["detect_megapixels_per_s"]
+    _echo(f"survey night ({source}): {captures} captures of {side} x {side} in {night_s:.1f} s end to end "
+          f"({out['night_megapixels_per_s']:.2f} MP/s, {out['done']} done, F >= {out['f_measure_min']:.3f}) vs "
+          f"rsmb detect on one {detect_side} x {detect_side} pair {detect_s:.1f} s "
+          f"({out['detect_megapixels_per_s']:.2f} MP/s): {100 * out['ratio']:.0f} %; the night again "
+          f"{rerun_s:.1f} s ({100 * rerun_s / night_s:.0f} % of the first, {out['rerun_skipped']} skipped)")
+    return out
+
+
+def bench_survey(data, workdir, *, quick=False):
+    out = {"pairing": bench_pairing(data, workdir, size=256 if quick else 512)}
+    out["night"] = bench_night(data, workdir, captures=3 if quick else 8, side=512 if quick else 1024,
+                               detect_side=1024 if quick else 4096)
+    return out
