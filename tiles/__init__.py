@@ -4,14 +4,13 @@ per-tile labels and the GIS products (COGs, change polygons in a GeoPackage)."""
 
 from ._georef import (
     Coverage,
-    Pairing,
     RasterGrid,
     is_georeferenced,
-    pair_images,
     reference_coverage,
     reference_window,
 )
 from ._grid import Tile, TileGrid
+from ._pairing import Pairing, pair_images
 from ._ingest import WindowStats, check_stats, ingest_core, read_clipped, read_padded
 from ._geo import GeoInfo, write_spatial_coords
 from ._io import (

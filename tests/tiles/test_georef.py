@@ -13,12 +13,8 @@ from rasterio.warp import calculate_default_transform, reproject
 from rsmb import tiles
 from rsmb.ops import InputError, ParameterError, aerial_scene
 from rsmb.tiles import _georef
-from rsmb.tiles._georef import (
-    RasterGrid,
-    pair_images,
-    reference_coverage,
-    reference_window,
-)
+from rsmb.tiles._georef import RasterGrid, reference_coverage, reference_window
+from rsmb.tiles._pairing import pair_images
 
 UTM = "EPSG:32633"  # lat ~45 N at y = 5 000 000
 X0, Y0 = 500000.0, 5000000.0
