@@ -32,12 +32,13 @@ from ._params import RegistrationParams, auto_step
 from ._register import Registration, register
 from ._rowsolve import solve_row_fast
 from ._scene import aerial_scene, paste_changes
+from ._slow import SlowPath, estimate_slow
 from ._synth import MOTIONS, SyntheticPair, motion_path, synthesize_pair
 from ._threshold import kapur_threshold, kapur_threshold_histogram
 
 #: Version of the kernels' results: raised whenever a change to ops alters what
 #: a run computes, so that ``--resume`` never mixes tiles of two versions.
-KERNEL_VERSION = 2
+KERNEL_VERSION = 3
 
 __all__ = [
     "KERNEL_VERSION",
@@ -55,6 +56,8 @@ __all__ = [
     "RegistrationParams",
     "Registration",
     "register",
+    "SlowPath",
+    "estimate_slow",
     "auto_step",
     "solve_row_fast",
     "solve_row_exact",

@@ -18,6 +18,9 @@ from ._warp import _remap_rows
 __all__ = ["CameraPath", "RenderResult", "render"]
 
 SHUTTERS = ("rolling", "global")
+INTERPOLATIONS = ("bilinear", "cubic")
+#: Sub-pixel offsets of the cubic renderer's 2 x 2 area samples.
+_AREA_OFFSETS = (-0.25, 0.25)
 
 
 @dataclass(frozen=True)
@@ -76,7 +79,7 @@ def _exposure_times(shape, shutter, row_delay, exposure, samples):
 
 
 def render(source, path, *, shape, camera=None, shutter="rolling", row_delay=1.0, exposure=0.0,
-           samples=24, source_origin_yx=(0, 0), gain=1.0):
+           samples=24, source_origin_yx=(0, 0), gain=1.0, interpolation="bilinear"):
     """Render a capture of ``source`` seen along ``path``.
 
     Parameters
@@ -100,6 +103,11 @@ def render(source, path, *, shape, camera=None, shutter="rolling", row_delay=1.0
         Position of the frame's pixel (0, 0) in ``source``.
     gain : float
         Global illumination gain applied to the rendered intensities.
+    interpolation : {"bilinear", "cubic"}
+        "bilinear" samples the source with the registration's own warp kernel
+        (:mod:`ops._warp`); "cubic" is an independent renderer for measuring
+        accuracy out of sample: OpenCV's bicubic remapping, each pixel the mean
+        of 2 x 2 sub-pixel samples (its area), never the solver's kernel.
 
     Returns
     -------
@@ -109,11 +117,51 @@ def render(source, path, *, shape, camera=None, shutter="rolling", row_delay=1.0
         raise ParameterError(f"shutter: expected one of {SHUTTERS}, got {shutter!r}")
     if exposure < 0 or row_delay < 0:
         raise ParameterError(f"exposure and row_delay: expected >= 0, got {exposure}, {row_delay}")
+    if interpolation not in INTERPOLATIONS:
+        raise ParameterError(f"interpolation: expected one of {INTERPOLATIONS}, got {interpolation!r}")
     camera = camera or Camera.for_shape(shape)
     times = _exposure_times(shape, shutter, row_delay, exposure, int(samples))
     poses = path(times)  # (H, S, 6)
     src = np.ascontiguousarray(source, dtype=np.float32)
+    if interpolation == "cubic":
+        image, valid = _render_cubic(src, poses, camera, shape, source_origin_yx)
+        return RenderResult((image * np.float32(gain)).astype(np.float32), poses.mean(axis=1), valid)
     image, valid = _remap_rows(src, poses, float(camera.focal), camera.center_xy[0] + source_origin_yx[1],
                                camera.center_xy[1] + source_origin_yx[0], int(shape[1]),
                                float(source_origin_yx[0]), float(source_origin_yx[1]))
     return RenderResult((image * np.float32(gain)).astype(np.float32), poses.mean(axis=1), valid.astype(bool))
+
+
+def _render_cubic(src, poses, camera, shape, origin_yx):
+    """Mean over exposure samples and 2 x 2 sub-pixel positions of the source
+    remapped bicubically (OpenCV) by each row's pose: (image (H, W) float32,
+    valid (H, W) bool)."""
+    import cv2
+
+    from ._camera import pose_homographies
+
+    height, width = int(shape[0]), int(shape[1])
+    acc = np.zeros((height, width), np.float64)
+    valid = np.ones((height, width), bool)
+    inside = np.isfinite(src)
+    filled = np.where(inside, src, 0.0).astype(np.float32)
+    hs, ws = src.shape
+    count = 0
+    for s in range(poses.shape[1]):
+        inv = pose_homographies(poses[:, s], camera, inverse=True)  # (H, 3, 3), frame pixels
+        for dy in _AREA_OFFSETS:
+            for dx in _AREA_OFFSETS:
+                x = np.arange(width, dtype=np.float64)[None, :] + dx
+                y = np.arange(height, dtype=np.float64)[:, None] + dy
+                den = inv[:, 2, 0, None] * x + inv[:, 2, 1, None] * y + inv[:, 2, 2, None]
+                u = (inv[:, 0, 0, None] * x + inv[:, 0, 1, None] * y + inv[:, 0, 2, None]) / den + origin_yx[1]
+                v = (inv[:, 1, 0, None] * x + inv[:, 1, 1, None] * y + inv[:, 1, 2, None]) / den + origin_yx[0]
+                mx, my = u.astype(np.float32), v.astype(np.float32)
+                acc += cv2.remap(filled, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+                valid &= (u >= 1) & (v >= 1) & (u <= ws - 3) & (v <= hs - 3)
+                if not inside.all():
+                    hit = cv2.remap(inside.astype(np.float32), mx, my, cv2.INTER_LINEAR,
+                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+                    valid &= hit > 0.999
+                count += 1
+    return (acc / count).astype(np.float32), valid

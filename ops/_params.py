@@ -48,6 +48,13 @@ class RegistrationParams:
     max_outer, max_add : int
         Row solver limits: outer iterations, poses added to the working set per
         iteration.
+    slow_axes : tuple of str
+        Out-of-plane rotations estimated as a slow part of the path on the whole
+        window before the rows (:mod:`ops._slow`), a subset of ("rx", "ry");
+        axes also searched per row (in ``axes``) are left out.  Empty: none.
+    slow_search : float
+        Largest slow rotation (deg) the tile halo makes room for; a fit beyond
+        twice this is not trusted.
     gain_slope : bool
         Also fit a linear illumination slope along the rows of the window
         (``1 + b (x - x_c)``, robustly, changes excluded): ``||w_i||_1`` gives each
@@ -72,9 +79,17 @@ class RegistrationParams:
     max_outer: int = 100
     max_add: int = 8
     gain_slope: bool = True
+    slow_axes: tuple = ("rx", "ry")
+    slow_search: float = 3.0
 
     def __post_init__(self):
         axes = tuple(self.axes)
+        slow = tuple(self.slow_axes)
+        if any(a not in ("rx", "ry") for a in slow) or len(set(slow)) != len(slow):
+            raise ParameterError(f"slow_axes: expected distinct names from ('rx', 'ry'), got {slow}")
+        object.__setattr__(self, "slow_axes", tuple(a for a in slow if a not in axes))
+        if not self.slow_search >= 0:
+            raise ParameterError(f"slow_search: expected degrees >= 0, got {self.slow_search!r}")
         n = len(axes)
         hw = _per_axis(self.half_width, n, "half_width")
         st = _per_axis(self.step, n, "step")
@@ -92,6 +107,11 @@ class RegistrationParams:
             raise ParameterError(f"shutter: expected 'rolling' or 'global', got {self.shutter!r}")
         if not (self.lambda_w >= 0 and self.lambda_chi > 0):
             raise ParameterError(f"lambda_w >= 0 and lambda_chi > 0 expected, got {self.lambda_w}, {self.lambda_chi}")
+
+    @property
+    def trajectory_axes(self):
+        """Axes of the trajectory :func:`register` reports: ``axes`` then the slow ones."""
+        return tuple(self.axes) + tuple(self.slow_axes)
 
     @property
     def is_resolved(self):

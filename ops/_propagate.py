@@ -509,7 +509,9 @@ class _Propagation:
         centroid there (flagged: that row is not checked again).  Returns the
         centroid, the centre of the row's next grid."""
         block = [r for r in rows[:4 * self.solver.params.block_rows] if informative[r]][:self.solver.params.block_rows]
-        uncertainty = np.abs(own - predicted) + self.step
+        # a grid holding both poses, at most twice the row neighbourhood wide:
+        # a row that jumped farther than that is not a pose worth holding
+        uncertainty = np.minimum(np.abs(own - predicted), 2 * np.asarray(self.space.half_width)) + self.step
         center, _, _ = _refine_start(self.solver, predicted, np.sort(block), uncertainty, iterations=2,
                                      stride=np.ones(len(self.step)))
         dims = len(self.step)

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._camera import Camera
+from ._camera import POSE_AXES, Camera
 from ._errors import ParameterError
 from ._gain import GAIN_SLOPE_RESOLVE, _column_gain_guess, _fold_gain, _gain_slope
 from ._oracle import optimal_chi
@@ -22,6 +22,7 @@ from ._params import RegistrationParams
 from ._propagate import _Propagation, _shift_weights
 from ._rowproblem import _centroid, _RowProblem, _shift_margin, _Solver
 from ._rowsolve import _synthesize
+from ._slow import estimate_slow, slow_from_trajectory
 from ._start import _adapted_half_width, _choose_start, _coarse_search, _row_energy, _start, _start_row
 
 __all__ = ["Registration", "register"]
@@ -41,7 +42,8 @@ class Registration:
     valid : ndarray, shape (H, W), bool
         Pixels whose every pose sampled valid reference data.
     trajectory : ndarray, shape (H, D), float64
-        Per-row centroid pose over ``axes`` in global pose coordinates.
+        Per-row centroid pose over ``axes`` in global pose coordinates (the
+        row axes, then the slow ones: zero where no slow part was found).
     row_gain : ndarray, shape (H,)
         ``||w_i||_1`` per row (the illumination gain seen by that row).
     row_state : ndarray, shape (H,), uint8
@@ -67,7 +69,7 @@ class Registration:
 
 
 def register(reference, distorted, *, camera=None, params=None, reference_origin_yx=(0, 0),
-             distorted_origin_yx=(0, 0), reference_valid=None, distorted_valid=None, prior=None):
+             distorted_origin_yx=(0, 0), reference_valid=None, distorted_valid=None, prior=None, slow="auto"):
     """Register a distorted capture against a reference, row by row (eq. 13).
 
     Parameters
@@ -85,9 +87,16 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
     reference_valid, distorted_valid : ndarray of bool, optional
         False at nodata pixels.
     prior : ndarray, shape (H, D), optional
-        A trajectory to search around instead of starting from the middle: every
-        row searches ``N(prior_i, b, s)`` (used to re-solve a tile around its
-        neighbours' path).
+        A trajectory over ``params.trajectory_axes`` to search around instead of
+        starting from the middle: every row searches ``N(prior_i, b, s)`` with
+        the prior's slow part (used to re-solve a tile around its neighbours'
+        path).
+    slow : "auto", SlowPath or None
+        The slow out-of-plane part of the path (``params.slow_axes``): "auto"
+        estimates it from these windows (:func:`estimate_slow`); a
+        :class:`SlowPath` (rows of ``distorted``) found on a wider view, such
+        as the whole image at a coarser scale, is used as it is; None: no slow
+        part.  Ignored with a ``prior``, which carries its own.
 
     Returns
     -------
@@ -102,9 +111,22 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
     dvalid = np.ones(dist.shape, bool) if distorted_valid is None else np.asarray(distorted_valid, bool)
     if prior is not None:
         prior = np.asarray(prior, dtype=np.float64)
-        if prior.shape != (dist.shape[0], len(params.axes)):
-            raise ParameterError(f"prior: expected shape {(dist.shape[0], len(params.axes))}, got {prior.shape}")
-    args = (camera, params, reference_origin_yx, distorted_origin_yx, prior)
+        expected = (dist.shape[0], len(params.trajectory_axes))
+        if prior.shape != expected:
+            raise ParameterError(f"prior: expected shape {expected}, got {prior.shape}")
+        slow = slow_from_trajectory(prior, params.trajectory_axes)
+        prior = prior[:, :len(params.axes)]
+    elif not params.slow_axes:
+        slow = None
+    elif isinstance(slow, str):
+        if slow != "auto":
+            raise ParameterError(f"slow: expected 'auto', a SlowPath or None, got {slow!r}")
+        slow = estimate_slow(ref, dist, dvalid, camera=camera, reference_origin_yx=reference_origin_yx,
+                             distorted_origin_yx=distorted_origin_yx, axes=params.slow_axes,
+                             limit=2.0 * params.slow_search)
+    elif slow is not None and slow.rotation.shape[0] != dist.shape[0]:
+        raise ParameterError(f"slow: expected a path of {dist.shape[0]} rows, got {slow.rotation.shape[0]}")
+    args = (camera, params, reference_origin_yx, distorted_origin_yx, prior, slow)
     # eq. 13 has one gain per row: a gain changing along the rows by more than a
     # few per cent biases the poses, so a slope fitted to the registration is
     # divided out of the capture and the rows are solved again (at most twice)
@@ -129,15 +151,26 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
         scaled = dist / factor
     if factor is not None:
         _fold_gain(out, dist, factor, delta)
-    return Registration(out.registered, out.chi, out.valid, out.trajectory, out.row_gain, out.row_state,
-                        params.axes, timings)
+    trajectory = np.concatenate([out.trajectory, _slow_columns(slow, params.slow_axes, dist.shape[0])], axis=1)
+    return Registration(out.registered, out.chi, out.valid, trajectory, out.row_gain, out.row_state,
+                        params.trajectory_axes, timings)
 
 
-def _solve_rows(ref, dist, dvalid, camera, params, reference_origin_yx, distorted_origin_yx, prior):
+def _slow_columns(slow, axes, height):
+    """The slow axes' columns (H, len(axes)) of the trajectory (zero without a slow part)."""
+    out = np.zeros((height, len(axes)))
+    if slow is not None:
+        pose6 = slow.pose6(np.arange(height))
+        for q, a in enumerate(axes):
+            out[:, q] = pose6[:, POSE_AXES.index(a)]
+    return out
+
+
+def _solve_rows(ref, dist, dvalid, camera, params, reference_origin_yx, distorted_origin_yx, prior, slow):
     """Every row of ``dist`` against ``ref`` (eq. 13): outputs, the Huber delta, timings."""
     row_pad = int(np.ceil(3 * max([params.half_width[d] for d, a in enumerate(params.axes) if a == "ty"] + [0])))
     problem = _RowProblem(ref, dist, dvalid, camera, reference_origin_yx, distorted_origin_yx, params.axes,
-                          params.step, _shift_margin(params, prior), row_pad + 4)
+                          params.step, _shift_margin(params, prior), row_pad + 4, slow)
     solver = _Solver(problem, params)
     t0 = time.perf_counter()
     height, width = dist.shape

@@ -26,7 +26,7 @@ class _RowProblem:
     BAND = 64
 
     def __init__(self, reference, distorted, dist_valid, camera, ref_origin, dist_origin, axes, steps, margin,
-                 row_pad=16):
+                 row_pad=16, slow=None):
         self.ref = reference
         self.dist = distorted
         self.dist_valid = dist_valid
@@ -37,6 +37,7 @@ class _RowProblem:
         self.dy = int(dist_origin[0] - ref_origin[0])
         self.dx = int(dist_origin[1] - ref_origin[1])
         self.axes = axes
+        self.slow = slow  # SlowPath or None: rx, ry per row, baked into every warp
         self.width = distorted.shape[1]
         self.steps = np.asarray(steps, dtype=np.float64)
         shift_axes = [a for a in ("tx", "ty") if a in axes]
@@ -69,7 +70,10 @@ class _RowProblem:
             pose = np.zeros(len(self.axes))
             pose[self.other] = np.asarray(index, dtype=np.float64)[self.other] * self.steps[self.other]
             first_row = self.dy - self.margin + band * self.BAND - self.pad
-            _warp_into(self.ref, full_poses(pose, self.axes), self.focal, self.cx, self.cy, float(first_row),
+            pose6 = full_poses(pose, self.axes)[None, :]
+            if self.slow is not None:  # each pre-translation row with its own slow rotation
+                pose6 = pose6 + self.slow.prewarp_pose6(first_row - self.dy + np.arange(self.stack_shape[0]))
+            _warp_into(self.ref, pose6, self.focal, self.cx, self.cy, float(first_row),
                        float(self.dx - self.margin), self.stack[slot])
             self.slots[(key, band)] = slot
         return slot
@@ -112,6 +116,10 @@ class _RowProblem:
                              dtype=np.int64)[inverse.ravel()]
             self.slot_cache[key] = slots
         return slots
+
+    def with_slow(self, poses6, row):
+        """Full poses (K, 6) of capture row ``row`` with the slow rotations added."""
+        return poses6 if self.slow is None else poses6 + self.slow.pose6(row)
 
     def rotation_stride(self, coarsen=1):
         """Per axis, how many lattice steps a block solve may skip: rz steps are
@@ -160,7 +168,8 @@ class _RowProblem:
                 slot, shift_y, shift_x, y = self.gather_args(i, index, poses)
                 v = _gather_row(self.stack, slot, shift_y, shift_x, y, self.margin, buf)
             else:
-                v = _build_row(self.ref, float(i + self.dy), float(self.dx), poses6, self.focal, self.cx, self.cy, buf)
+                v = _build_row(self.ref, float(i + self.dy), float(self.dx), self.with_slow(poses6, i), self.focal,
+                               self.cx, self.cy, buf)
             valid[q * n:(q + 1) * n] = (v != 0) & self.dist_valid[i]
         if not self.dist_all_valid:
             a[:, ~valid] = 0.0

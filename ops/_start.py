@@ -67,7 +67,7 @@ def _coarse_search(problem, params, rows, count=4):
         pose = full_poses(np.array([[rz]]), ("rz",))
         img = np.empty((band.size, width), dtype=np.float32)
         for q, i in enumerate(band):
-            _build_row(problem.ref, float(i + problem.dy), float(problem.dx), pose, problem.focal,
+            _build_row(problem.ref, float(i + problem.dy), float(problem.dx), problem.with_slow(pose, i), problem.focal,
                        problem.cx, problem.cy, buf)
             img[q] = buf[0]
         score = sum(cv2.matchTemplate(i, t, cv2.TM_CCOEFF_NORMED) for i, t in zip(_gradients(img), templates))

@@ -104,7 +104,8 @@ def _margin(path, camera, shape):
 
 
 def synthesize_pair(shape=(256, 256), *, motion="inplane", shutter="rolling", exposure=None, gain=1.0,
-                    changes=6, change_size=(14, 36), noise=0.0, scale=1.0, focal=None, seed=0):
+                    changes=6, change_size=(14, 36), noise=0.0, scale=1.0, focal=None, seed=0, path=None,
+                    scene=None, interpolation="bilinear"):
     """Make a reference and a distorted capture of it with known truth.
 
     Parameters
@@ -131,6 +132,15 @@ def synthesize_pair(shape=(256, 256), *, motion="inplane", shutter="rolling", ex
     focal : float, optional
         Focal length in pixels (default 1.2 x the larger side).
     seed : int
+    path : CameraPath, optional
+        The camera path (time in row periods), instead of a random one of ``motion``.
+    scene : ndarray, shape (Hs, Ws), optional
+        The scene (intensities in [0, 1]; e.g. a real aerial photograph) instead of
+        :func:`ops.aerial_scene`: the reference is its centre, and it must hold the
+        frame plus the path's reach on every side.
+    interpolation : {"bilinear", "cubic"}
+        How the capture is rendered (:func:`ops.render`): "cubic" is independent of
+        the solver's warp kernel, for accuracy measured out of sample.
 
     Returns
     -------
@@ -143,15 +153,25 @@ def synthesize_pair(shape=(256, 256), *, motion="inplane", shutter="rolling", ex
     camera = Camera.for_shape(shape, focal=focal)
     # a global shutter sees a short piece of a path as slow as a rolling frame's
     duration = height + exposure + 1.0 if shutter == "rolling" else 4.0 * (exposure + 1.0)
-    path = motion_path(motion, duration=duration, seed=seed, scale=scale)
+    if path is None:
+        path = motion_path(motion, duration=duration, seed=seed, scale=scale)
     margin = _margin(path, camera, shape)
-    scene = aerial_scene((height + 2 * margin, width + 2 * margin), seed=seed)
-    scene = (0.05 + 0.7 * scene).astype(np.float32)  # headroom for gains up to 1.3
+    if scene is None:
+        scene = aerial_scene((height + 2 * margin, width + 2 * margin), seed=seed)
+        scene = (0.05 + 0.7 * scene).astype(np.float32)  # headroom for gains up to 1.3
+    else:
+        scene = np.asarray(scene, dtype=np.float32)
+        top, left = (scene.shape[0] - height) // 2 - margin, (scene.shape[1] - width) // 2 - margin
+        if min(top, left) < 0:
+            raise ParameterError(f"scene: expected at least {height + 2 * margin} x {width + 2 * margin} pixels for "
+                                 f"this frame and path, got {scene.shape[0]} x {scene.shape[1]}")
+        scene = scene[top:top + height + 2 * margin, left:left + width + 2 * margin]
+    origin = (margin, margin)
     changed, pasted = paste_changes(scene, count=changes, size_range=change_size, seed=seed + 1,
                                     margin=margin + 12)
-    reference = np.ascontiguousarray(scene[margin:margin + height, margin:margin + width])
-    origin = (margin, margin)
-    kw = dict(shape=shape, camera=camera, shutter=shutter, row_delay=1.0, exposure=exposure, source_origin_yx=origin)
+    reference = np.ascontiguousarray(scene[origin[0]:origin[0] + height, origin[1]:origin[1] + width])
+    kw = dict(shape=shape, camera=camera, shutter=shutter, row_delay=1.0, exposure=exposure, source_origin_yx=origin,
+              interpolation=interpolation)
     gain_map = _gain_map(gain, shape)
     seen = render(changed, path, **kw)
     seen_image = seen.image * gain_map
@@ -159,7 +179,7 @@ def synthesize_pair(shape=(256, 256), *, motion="inplane", shutter="rolling", ex
     distorted = seen_image
     if noise > 0:
         distorted = distorted + np.random.default_rng(seed + 2).normal(0, noise, distorted.shape).astype(np.float32)
-    mask_ref = np.ascontiguousarray(pasted[margin:margin + height, margin:margin + width])
+    mask_ref = np.ascontiguousarray(pasted[origin[0]:origin[0] + height, origin[1]:origin[1] + width])
     return SyntheticPair(reference, distorted.astype(np.float32), truth.image > 0.5, mask_ref, seen.centroid,
                          gain_map, seen.valid, camera, path)
 

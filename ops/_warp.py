@@ -159,13 +159,14 @@ def _gather_row(stack, slot, shift_y, shift_x, y, x0, out):
 
 
 @numba.njit(**_JIT)
-def _warp_into(src, pose6, focal, cx, cy, oy, ox, out):
-    """``out`` (R, W) = rows ``oy ..`` (columns ``ox ..``) of ``src`` warped by one
-    pose, NaN where the pose samples outside ``src`` or nodata."""
+def _warp_into(src, poses6, focal, cx, cy, oy, ox, out):
+    """``out`` (R, W) = rows ``oy ..`` (columns ``ox ..``) of ``src`` warped by
+    ``poses6`` (1, 6): one pose for every row, or (R, 6): row ``q`` by its own
+    pose; NaN where a pose samples outside ``src`` or nodata."""
     rows, width = out.shape
-    poses = pose6.reshape(1, 6)
     buf = np.empty((1, width), dtype=np.float32)
     for q in range(rows):
-        v = _build_row(src, oy + q, ox, poses, focal, cx, cy, buf)
+        p = 0 if poses6.shape[0] == 1 else q
+        v = _build_row(src, oy + q, ox, poses6[p:p + 1], focal, cx, cy, buf)
         for j in range(width):
             out[q, j] = buf[0, j] if v[j] else np.nan

@@ -42,6 +42,12 @@ class CaptureSpec:
         A key of :data:`ops.MOTIONS`.
     exposure : float
         Row exposure in row periods.
+    path : CameraPath or None
+        The camera path, instead of a random one of ``motion``.
+    interpolation : {"bilinear", "cubic"}
+        How the capture is rendered (:func:`ops.render`).
+    gain : float
+        Illumination gain of the capture.
     """
 
     origin_yx: tuple
@@ -50,6 +56,9 @@ class CaptureSpec:
     changes: int = 4
     motion: str = "inplane"
     exposure: float = 16.0
+    path: object = None
+    interpolation: str = "bilinear"
+    gain: float = 1.0
 
 
 def scene_geo(origin_yx=(0, 0)):
@@ -124,17 +133,18 @@ def _capture(scene, spec, noise):
     """(capture image, truth mask, trajectory) of ``spec`` over ``scene``."""
     (r0, c0), (h, w) = spec.origin_yx, spec.shape
     camera = ops.Camera.for_shape((h, w))
-    path = ops.motion_path(spec.motion, duration=h + spec.exposure + 1.0, seed=spec.seed)
+    path = spec.path or ops.motion_path(spec.motion, duration=h + spec.exposure + 1.0, seed=spec.seed)
     window = scene[r0:r0 + h, c0:c0 + w]
     changed_window, pasted_window = ops.paste_changes(window, count=spec.changes, size_range=(14, 36),
                                                       seed=spec.seed + 1, margin=24)
     changed, pasted = scene.copy(), np.zeros(scene.shape, np.float32)
     changed[r0:r0 + h, c0:c0 + w] = changed_window
     pasted[r0:r0 + h, c0:c0 + w] = pasted_window
-    kw = dict(shape=(h, w), camera=camera, exposure=spec.exposure, source_origin_yx=(r0, c0))
+    kw = dict(shape=(h, w), camera=camera, exposure=spec.exposure, source_origin_yx=(r0, c0),
+              interpolation=spec.interpolation)
     seen = ops.render(changed, path, **kw)
     truth = ops.render(pasted, path, **kw)
-    image = seen.image + np.random.default_rng(spec.seed + 2).normal(0, noise, (h, w)).astype(np.float32)
+    image = seen.image * np.float32(spec.gain) + np.random.default_rng(spec.seed + 2).normal(0, noise, (h, w)).astype(np.float32)
     return np.where(seen.valid, image, 0.0).astype(np.float32), truth.image > 0.5, pasted_window, seen.centroid
 
 

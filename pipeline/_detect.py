@@ -46,6 +46,7 @@ from . import _tasks
 from ._tasks import _specs, _tile_done, _tile_results
 from ._fuse import _agreement, _fuse, _outliers
 from ._outputs import _check_outputs, _finished, write_products
+from ._overview import slow_stage
 from ._scheduler import check_scheduler, open_runner
 
 __all__ = ["DetectConfig", "DetectResult", "detect", "default_overlap", "default_tile", "VERSION"]
@@ -165,8 +166,8 @@ def default_overlap(params, camera, shape):
     """Halo (px) that holds every displacement the wide search allows anywhere in
     the image, plus the row neighbourhood: the extreme poses of the search box
     are applied to the image corners."""
-    axes = params.axes
-    search = np.asarray(params.search)
+    axes = params.axes + params.slow_axes
+    search = np.asarray(params.search + (params.slow_search,) * len(params.slow_axes))
     corners = np.array([[0, 0, 1], [shape[1] - 1, 0, 1], [0, shape[0] - 1, 1], [shape[1] - 1, shape[0] - 1, 1.0]]).T
     signs = np.array(np.meshgrid(*[[-1.0, 1.0]] * len(axes), indexing="ij")).reshape(len(axes), -1).T
     hom = ops.pose_homographies(signs * search, camera, axes=axes, inverse=True)
@@ -316,7 +317,7 @@ def _fuse_paths(runner, group, run, plan, timings):
     path arrays.  Returns (fused path, summed histogram, per-tile gains,
     agreement, re-solved tiles)."""
     t0 = time.perf_counter()
-    grid, camera, axes = plan.grid, plan.camera, plan.params.axes
+    grid, camera, axes = plan.grid, plan.camera, plan.params.trajectory_axes
     paths, states, hist, residual_hists, gains = _tile_results(group)
     fused, agree, worst = _agreement(paths, states, grid, camera, axes)
     resolve = _outliers(worst, ops.residual_median(residual_hists), plan.config.agreement)
@@ -364,7 +365,7 @@ def _change_masks(runner, run, plan, fused, hist, timings):
         window = b.grown(plan.grid.halo, shape)
         pieces = [kept[i] for i in blocks.covering(window) if i in kept]
         if pieces:
-            args.append((run, b, window, pieces, stored_path[window[0]], plan.camera, plan.params.axes, changes))
+            args.append((run, b, window, pieces, stored_path[window[0]], plan.camera, plan.params.trajectory_axes, changes))
     masked = runner.map("masks", _tasks.mask_task, args)
     timings["changes_s"] = time.perf_counter() - t0
     timings["changes_compute_s_sum"] = float(sum(c for _, c in labelled + masked))
@@ -393,7 +394,7 @@ def _pairing_attrs(pairing):
 
 def _attributes(plan, result, scheduler):
     """Root attributes of the store (DESIGN.md's output store)."""
-    axes, grid, camera = plan.params.axes, plan.grid, plan.camera
+    axes, grid, camera = plan.params.trajectory_axes, plan.grid, plan.camera
     attrs = {
         "rsmb_version": VERSION,
         "kernel_version": ops.KERNEL_VERSION,
@@ -421,7 +422,7 @@ def _attributes(plan, result, scheduler):
 def _finish(group, store, plan, result, scheduler, overwrite, geotiff):
     """Stage 6: attributes, scratch arrays dropped, the store renamed into
     place, GeoTIFFs on request."""
-    axes = plan.params.axes
+    axes = plan.params.trajectory_axes
     group.attrs.update(_attributes(plan, result, scheduler))
     tiles.write_spatial_coords(group, plan.distorted.geo, plan.shape)
     group["trajectory"].attrs.update({"pose_axes": list(axes), "units": [ops.AXIS_UNITS[a] for a in axes]})
@@ -499,7 +500,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             return DetectResult(**done)
     check_scheduler(scheduler)
     _check_outputs(output, geotiff, overwrite)
-    group = tiles.create_result_store(output, _specs(plan.grid, len(plan.params.axes), plan.margin),
+    group = tiles.create_result_store(output, _specs(plan.grid, len(plan.params.trajectory_axes), plan.margin),
                                       {"run_key": plan.key}, overwrite=overwrite, resume=resume)
     store = str(tiles.partial_path(output))
     run = _tasks.RunStore(store, plan.key, plan.margin)
@@ -514,6 +515,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", plan.distorted.path, shape[0],
                      shape[1], len(grid), grid.tile, grid.halo, scheduler)
             _ingest(runner, group, run, plan, timings)
+            slow_stage(runner, group, run, plan, timings)
             _register_tiles(runner, group, run, plan, resume, timings)
             fused, hist, gains, agree, resolve = _fuse_paths(runner, group, run, plan, timings)
             threshold, changed, components = _change_masks(runner, run, plan, fused, hist, timings)

@@ -43,6 +43,7 @@ def _specs(grid, dims, margin=0):
         "work/tile_summary": spec((ny, nx, _SUMMARY), "float64", (1, 1, _SUMMARY), ("tile_y", "tile_x", "value"),
                                   compressed=False),
         "work/labels": spec((h, w), "int32", (t, t), ("y", "x"), compressed=False),
+        "work/slow": spec((h, 3), "float32", (h, 3), ("y", "slow"), float("nan"), compressed=False),
         "ingest/reference": spec((h + 2 * margin, w + 2 * margin), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
         "ingest/distorted": spec((h, w), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
     }
@@ -101,6 +102,23 @@ def ingest_task(store, name, read, block, offset):
     return ingest_core(read, block, _array(store, name), offset)
 
 
+def overview_task(store, name, block, factor, phase):
+    """The cells of the overview of the ingested array ``name`` that start in
+    one block's core (:func:`tiles.block_overview`)."""
+    return tiles.block_overview(_array(store, name), block.core, factor, phase)
+
+
+def _slow_prior(store, tile, params):
+    """The tile's rows of the slow path found on the overview (``work/slow``),
+    or None (none found, or none asked for)."""
+    if not params.slow_axes:
+        return None
+    found = _array(store, "work/slow")[tile.core[0]].astype(np.float64)
+    if not np.isfinite(found).all():
+        return None
+    return ops.SlowPath(found[:, :2], found[:, 2])
+
+
 def register_task(store, tile, camera, params, prior=None):
     """Stage 1: register one tile and write its core outputs.  The tile's
     summary row (histograms, gain, seconds, and 1 in its last column) is written
@@ -123,7 +141,7 @@ def register_task(store, tile, camera, params, prior=None):
     dist_valid = np.isfinite(distorted)
     result = ops.register(reference, np.nan_to_num(distorted), camera=camera, params=params,  # NaN: nodata
                           reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
-                          distorted_valid=dist_valid, prior=prior)
+                          distorted_valid=dist_valid, prior=prior, slow=_slow_prior(store, tile, params))
     tile.check_core(result.registered)
     score = np.abs(result.chi)
     residual = np.where(result.valid, distorted - result.registered, 0.0)

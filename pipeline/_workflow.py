@@ -64,6 +64,7 @@ class DetectOptions(_Model):
     half_width: list[Annotated[float, Field(ge=0)] | _Auto] = ["auto"]
     step: list[Annotated[float, Field(gt=0)] | _Auto] = ["auto"]
     search: list[Annotated[float, Field(ge=0)]] | None = None
+    slow_axes: list[Literal["rx", "ry", "none"]] = ["rx", "ry"]
     shutter: Literal["rolling", "global"] = "rolling"
     solver: Literal["fast", "exact"] = "fast"
     lambda_w: Annotated[float, Field(ge=0)] = 1e-3
@@ -76,7 +77,7 @@ class DetectOptions(_Model):
     workers: Annotated[int, Field(ge=1)] | None = None
     resume: bool = False
 
-    @field_validator("axes", "half_width", "step", "search", mode="before")
+    @field_validator("axes", "half_width", "step", "search", "slow_axes", mode="before")
     @classmethod
     def _split(cls, value):
         return None if value is None else _per_axis(value)
@@ -89,7 +90,7 @@ class DetectOptions(_Model):
         return build_config(text(self.axes), text(self.half_width), text(self.step),
                             text(self.search) if self.search else None, self.shutter, self.solver, self.lambda_w,
                             self.lambda_chi, str(self.threshold), self.min_area, self.focal, self.tile_size,
-                            self.overlap)
+                            self.overlap, slow_axes=text(self.slow_axes))
 
 
 class DetectStep(DetectOptions):

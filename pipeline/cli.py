@@ -116,6 +116,9 @@ def registration_options(func):
         click.option("--step", default="auto", show_default=True,
                      help="Grid step s per axis, or 'auto': 1 px for tx,ty; for rotations the angle that "
                           "moves the farthest pixel by 1 px (the paper's rz step 0.5 deg: --step 1,1,0.5)."),
+        click.option("--slow-axes", default="rx,ry", show_default=True,
+                     help="Out-of-plane rotations (camera pitch rx, yaw ry) estimated as a slow part of the path "
+                          "on the whole capture before the rows, or 'none'."),
         click.option("--search", default=None,
                      help="Largest motion the initial wide search covers (+-) per axis. Default tx,ty 20 px, "
                           "rz 3 deg."),
@@ -142,7 +145,7 @@ def registration_options(func):
 
 
 def build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold, min_area,
-                 focal, tile=None, overlap=None):
+                 focal, tile=None, overlap=None, *, slow_axes="rx,ry"):
     """A :class:`pipeline.DetectConfig` from command-line values."""
     from ._detect import DetectConfig
 
@@ -156,9 +159,20 @@ def build_config(axes, half_width, step, search, shutter, solver, lambda_w, lamb
         half_width=_floats(half_width, "--half-width", len(axes), allow_auto=True, minimum=0),
         step=_floats(step, "--step", len(axes), allow_auto=True, positive=True),
         search=_floats(search, "--search", len(axes), minimum=0) if search else tuple(_SEARCH[a] for a in axes),
-        shutter=shutter, solver=solver, lambda_w=lambda_w, lambda_chi=lambda_chi)
+        shutter=shutter, solver=solver, lambda_w=lambda_w, lambda_chi=lambda_chi,
+        slow_axes=_slow_axes(slow_axes))
     changes = ops.ChangeParams(threshold=threshold, min_area=min_area)
     return DetectConfig(registration=reg, changes=changes, tile=tile, overlap=overlap, focal=focal)
+
+
+def _slow_axes(text):
+    """``--slow-axes``: names from rx, ry, or 'none'."""
+    names = tuple(a.strip() for a in text.split(",") if a.strip())
+    if names == ("none",):
+        return ()
+    if not names or any(a not in ("rx", "ry") for a in names) or len(set(names)) != len(names):
+        raise click.BadParameter(f"expected rx, ry, rx,ry or none, got {text!r}", param_hint="--slow-axes")
+    return names
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -200,14 +214,14 @@ def _quiet_library_warnings():
 @click.option("--geotiff", type=click.Path(file_okay=False), default=None,
               help="Also write the masks as GeoTIFFs into this directory (existing files need --overwrite).")
 @click.option("--json", "as_json", is_flag=True, help="Print the run summary as JSON.")
-def detect(reference, distorted, output, axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi,
-           threshold, min_area, focal, tile_size, overlap, scheduler, workers, worker_timeout, resume, overwrite,
-           geotiff, as_json):
+def detect(reference, distorted, output, axes, half_width, step, slow_axes, search, shutter, solver, lambda_w,
+           lambda_chi, threshold, min_area, focal, tile_size, overlap, scheduler, workers, worker_timeout, resume,
+           overwrite, geotiff, as_json):
     """Register DISTORTED against REFERENCE and write change masks to a zarr store."""
     from ._detect import detect as run
 
     config = build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold,
-                          min_area, focal, tile_size, overlap)
+                          min_area, focal, tile_size, overlap, slow_axes=slow_axes)
     summary = run(reference, distorted, output, config=config, scheduler=scheduler, workers=workers,
                   overwrite=overwrite, resume=resume, geotiff=geotiff, worker_timeout=worker_timeout)
     _print_summary(summary, as_json)
@@ -354,9 +368,9 @@ def report(store, out_dir, max_pixels, overwrite):
 @click.option("--no-report", is_flag=True, help="Skip each capture's HTML report.")
 @click.option("--json", "as_json", is_flag=True, help="Print the night's summary as JSON on stdout.")
 @click.pass_context
-def survey(ctx, references, captures, out_dir, axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi,
-           threshold, min_area, focal, tile_size, overlap, scheduler, workers, worker_timeout, parallel, dry_run,
-           no_report, as_json):
+def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes, search, shutter, solver, lambda_w,
+           lambda_chi, threshold, min_area, focal, tile_size, overlap, scheduler, workers, worker_timeout, parallel,
+           dry_run, no_report, as_json):
     """A night of georeferenced captures (--captures GLOB) against REFERENCE files.
 
     Each capture gets a folder with its store, changes.gpkg, COGs, thumbnail
@@ -365,7 +379,7 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, search, s
     from ._survey import survey as run
 
     config = build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold,
-                          min_area, focal, tile_size, overlap)
+                          min_area, focal, tile_size, overlap, slow_axes=slow_axes)
     result = run(references, captures, out_dir, config=config, scheduler=scheduler, workers=workers,
                  parallel=parallel, dry_run=dry_run, worker_timeout=worker_timeout, report=not no_report)
     if as_json:

@@ -11,7 +11,8 @@ from ._georef import (
 )
 from ._grid import Tile, TileGrid
 from ._pairing import Pairing, pair_images
-from ._ingest import WindowStats, check_stats, ingest_core, read_clipped, read_padded
+from ._ingest import (WindowStats, block_overview, check_stats, ingest_core, overview_cells, read_clipped,
+                      read_padded)
 from ._geo import GeoInfo, write_spatial_coords
 from ._io import (
     ImageInfo,
@@ -54,6 +55,8 @@ __all__ = [
     "WindowStats",
     "check_stats",
     "ingest_core",
+    "overview_cells",
+    "block_overview",
     "read_clipped",
     "read_padded",
     "GeoInfo",

@@ -19,7 +19,7 @@ from rsmb.ops import InputError
 
 from ._io import read_window
 
-__all__ = ["ingest_core", "read_clipped", "read_padded", "check_stats", "WindowStats"]
+__all__ = ["ingest_core", "block_overview", "overview_cells", "read_clipped", "read_padded", "check_stats", "WindowStats"]
 
 
 @dataclass(frozen=True)
@@ -87,3 +87,29 @@ def check_stats(stats, path):
         raise InputError(f"{path}: has no valid pixel (all nodata or transparent)")
     if stats.low == stats.high:
         raise InputError(f"{path}: is constant (every valid pixel equals {stats.low:g})")
+
+
+def overview_cells(data, origin_yx, factor, phase=0):
+    """The mean of every ``factor`` x ``factor`` cell of an array's overview that
+    lies inside the window ``data`` at ``origin_yx`` (array rows, columns):
+    cells start at rows and columns ``phase + j * factor``.  Returns ((first
+    cell row, col), cells float32 (n, m)), NaN where a cell holds nodata."""
+    first = [-(-(o - phase) // factor) for o in origin_yx]  # ceil
+    start = [phase + f * factor - o for f, o in zip(first, origin_yx)]
+    count = [max((n - s) // factor, 0) for n, s in zip(data.shape, start)]
+    part = np.asarray(data[start[0]:start[0] + count[0] * factor, start[1]:start[1] + count[1] * factor])
+    cells = part.reshape(count[0], factor, count[1], factor).mean(axis=(1, 3), dtype=np.float64)
+    return (first[0], first[1]), cells.astype(np.float32)
+
+
+def block_overview(array, core, factor, phase=0):
+    """The cells of ``array``'s overview (:func:`overview_cells`) that start in
+    the block ``core`` (row and column slices): the block is read with
+    ``factor - 1`` more rows and columns, for the cells that straddle its
+    far edges, so that blocks together give the overview of the whole array."""
+    (r0, r1), (c0, c1) = [(s.start, s.stop) for s in core]
+    data = array[r0:min(r1 + factor - 1, array.shape[0]), c0:min(c1 + factor - 1, array.shape[1])]
+    (row, col), cells = overview_cells(data, (r0, c0), factor, phase)
+    rows = max(0, min(cells.shape[0], -(-(r1 - phase) // factor) - row))
+    cols = max(0, min(cells.shape[1], -(-(c1 - phase) // factor) - col))
+    return (row, col), cells[:rows, :cols]

@@ -28,9 +28,9 @@ def test_synth_detect_evaluate(tmp_path):
     assert arrays["change_mask"].shape == (256, 256) and arrays["change_mask"].dtype == np.uint8
     assert arrays["change_mask_reference"].shape == (256, 256)
     assert arrays["change_score"].dtype == np.float32 and arrays["registered"].dtype == np.float32
-    assert arrays["trajectory"].shape == (256, 3)
+    assert arrays["trajectory"].shape == (256, 5)
     assert arrays["gain"].shape == (2, 2)
-    assert attrs["pose_axes"] == ["tx", "ty", "rz"]
+    assert attrs["pose_axes"] == ["tx", "ty", "rz", "rx", "ry"]
     assert attrs["inputs"]["reference"]["sha256"] and attrs["summary"]["timings"]["total_s"] > 0
     assert "ingest" not in attrs and not (tmp_path / "out.zarr.partial").exists()
     result = _invoke(["evaluate", str(store), str(pair_dir), "--json"])

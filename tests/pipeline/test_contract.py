@@ -33,6 +33,8 @@ BAD_OPTIONS = [
     (["--overlap", "-1"], "--overlap"),
     (["--axes", "foo"], "--axes"),
     (["--axes", "tx,tx"], "--axes"),
+    (["--slow-axes", "rz"], "--slow-axes"),
+    (["--slow-axes", "rx,rx"], "--slow-axes"),
     (["--step", "0"], "--step"),
     (["--step", "1,1,nan"], "--step"),
     (["--half-width", "-1"], "--half-width"),

@@ -80,3 +80,21 @@ def test_blocks_are_unions_of_tiles(shape, tile, factor):
     assert (count == 1).all()  # so each tile belongs to exactly one block
     with pytest.raises(ParameterError, match="factor"):
         grid.coarsened(0)
+
+@pytest.mark.parametrize("factor,phase", [(4, 0), (4, 2), (3, 1)])
+def test_overview_by_blocks_equals_the_whole(factor, phase):
+    """The overview assembled from blocks equals the overview of the whole
+    array, also where cells straddle block edges (64-px blocks, cells of 3 or
+    4 px at several phases)."""
+    from rsmb.tiles import block_overview, overview_cells
+
+    array = np.random.default_rng(0).random((250, 190)).astype(np.float32)
+    (r, c), whole = overview_cells(array, (0, 0), factor, phase)
+    assert (r, c) == (0, 0) and whole.shape == ((250 - phase) // factor, (190 - phase) // factor)
+    out = np.full(whole.shape, np.nan, np.float32)
+    for r0 in range(0, 250, 64):
+        for c0 in range(0, 190, 64):
+            (row, col), cells = block_overview(array, (slice(r0, min(r0 + 64, 250)), slice(c0, min(c0 + 64, 190))),
+                                               factor, phase)
+            out[row:row + cells.shape[0], col:col + cells.shape[1]] = cells
+    np.testing.assert_allclose(out, whole, rtol=1e-6)

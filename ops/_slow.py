@@ -1,0 +1,521 @@
+"""The slow out-of-plane part of the camera path (METHOD.md section 7).
+
+A yaw (ry) moves a row almost as tx does and a pitch (rx) almost as ty does;
+what tells them apart is second order across the image (a yaw bends rows, a
+pitch stretches them by an amount that changes sign at the principal point).
+One row cannot see that, so the rows never search rx and ry: their slow part
+is estimated first, on the whole window, and the rows solve the fast in-plane
+part (tx, ty, rz) on a reference pre-warped by it (:class:`SlowPath`).
+
+The estimate (:func:`estimate_slow`): a dense optical flow (OpenCV DIS) from
+the capture to the reference, and a robust least-squares fit of the flow of
+small rotations about the principal point, with the in-plane motion free per
+band of rows and rx, ry smooth over the rows (a low-order polynomial of the
+row).  It is kept only where it matters: when the displacement it adds beyond
+the best in-plane fit reaches :data:`SLOW_MIN_PX` somewhere in the window.
+"""
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = []
+
+#: Rows between the knots of the in-plane motion in the fit.
+FIT_BAND = 32
+#: Flow vectors are sampled every this many pixels.
+FIT_STRIDE = 6
+#: The slow part is used when it moves some pixel of the window this far (px)
+#: beyond the in-plane fit of the same flow.
+SLOW_MIN_PX = 0.75
+#: ... and eq. 13 on :data:`SLOW_BLOCKS` blocks of rows spread over the window
+#: costs this much less with it (relative).
+SLOW_EQ13_GAIN = 0.02
+SLOW_BLOCKS = 4
+_AXES = ("rx", "ry")
+
+
+@dataclass(frozen=True)
+class SlowPath:
+    """Slow rotations per capture row and the ty shift of each row's content.
+
+    Attributes
+    ----------
+    rotation : ndarray, shape (H, 2), float64
+        (rx, ry) in degrees for every row of the capture window.
+    ty : ndarray, shape (H,), float64
+        The in-plane ty (px) of each row, to find which capture row a
+        pre-translation row of the pre-warped reference serves.
+    """
+
+    rotation: np.ndarray
+    ty: np.ndarray
+
+    def at_rows(self, rows, *, factor=1.0, offset=0.0):
+        """This path (found on an image ``factor`` times coarser whose row ``j``
+        covers rows from ``j * factor + offset``) at the rows ``rows`` of the
+        finer image: rotations interpolated, ty scaled."""
+        rows = np.asarray(rows, dtype=np.float64)
+        coarse = (rows - offset - 0.5 * (factor - 1.0)) / factor
+        index = np.arange(self.ty.shape[0], dtype=np.float64)
+        rotation = np.stack([np.interp(coarse, index, self.rotation[:, q]) for q in (0, 1)], 1)
+        return SlowPath(rotation, np.interp(coarse, index, self.ty) * factor)
+
+    def pose6(self, rows):
+        """Full poses (n, 6) of the slow part at capture rows ``rows`` (float ok)."""
+        rows = np.atleast_1d(np.asarray(rows, dtype=np.float64))
+        index = np.arange(self.rotation.shape[0], dtype=np.float64)
+        out = np.zeros((rows.size, 6))
+        out[:, 3] = np.interp(rows, index, self.rotation[:, 0])
+        out[:, 4] = np.interp(rows, index, self.rotation[:, 1])
+        return out
+
+    def prewarp_pose6(self, rows):
+        """Full poses (n, 6) for pre-translation rows ``rows``: the row ``r`` of a
+        reference warped by rotation only serves capture row ``i = r + ty(i)``."""
+        rows = np.atleast_1d(np.asarray(rows, dtype=np.float64))
+        index = np.arange(self.ty.shape[0], dtype=np.float64)
+        capture = rows
+        for _ in range(3):
+            capture = rows + np.interp(capture, index, self.ty)
+        return self.pose6(capture)
+
+
+def slow_from_trajectory(trajectory, axes):
+    """The :class:`SlowPath` of a trajectory (H, D) over ``axes`` whose rx, ry
+    columns are the slow part (None when it has none or they are all zero)."""
+    columns = [axes.index(a) if a in axes else None for a in _AXES]
+    if all(c is None for c in columns):
+        return None
+    rotation = np.stack([trajectory[:, c] if c is not None else np.zeros(len(trajectory)) for c in columns], 1)
+    if not np.any(rotation):
+        return None
+    ty = trajectory[:, axes.index("ty")] if "ty" in axes else np.zeros(len(trajectory))
+    return SlowPath(np.asarray(rotation, np.float64), np.asarray(ty, np.float64))
+
+
+def estimate_slow(reference, distorted, valid, *, camera, reference_origin_yx, distorted_origin_yx, axes=_AXES,
+                  limit=6.0, scale=1):
+    """The slow rotations of a capture window against its reference.
+
+    Parameters
+    ----------
+    reference : ndarray, shape (Hr, Wr), float32
+        Reference window (NaN for nodata), at least as large as the capture's.
+    distorted : ndarray, shape (H, W), float32
+    valid : ndarray of bool, shape (H, W)
+    camera : Camera
+        Intrinsics of the whole image.
+    reference_origin_yx, distorted_origin_yx : tuple of int
+        The windows' positions in the whole image.
+    axes : tuple of str
+        The slow axes to estimate, a subset of ("rx", "ry").
+    limit : float
+        A fit reaching this rotation (deg) anywhere is not trusted.
+    scale : int
+        These images are ``scale`` times coarser than the capture the path is
+        for (an overview): :data:`SLOW_MIN_PX` is in the capture's pixels.
+
+    Returns
+    -------
+    SlowPath or None
+        None when the slow part is negligible (see :data:`SLOW_MIN_PX`), the
+        window too small or the fit not trustworthy.
+    """
+    height, width = distorted.shape
+    if height < 2 * FIT_BAND or width < 64 or not axes:
+        return None
+    dy = int(distorted_origin_yx[0] - reference_origin_yx[0])
+    dx = int(distorted_origin_yx[1] - reference_origin_yx[1])
+    # the flow starts from the window's bulk shift, so that it only has to
+    # find the few pixels around it (DIS loses displacements of ~100 px)
+    shifts = _bulk_shifts(reference, distorted, valid, dy, dx)
+    under = _sheared_crop(reference, dy, dx, shifts, width)
+    cx = camera.center_xy[0] - distorted_origin_yx[1]
+    cy = camera.center_xy[1] - distorted_origin_yx[0]
+    ok = valid & np.isfinite(under)
+    fit = None
+    # a quick flow on the images at half size decides whether there is a slow
+    # part; when there may be, a flow at full resolution measures it
+    for scale, finest, stride in ((2, 1, 2 * FIT_STRIDE), (1, 0, FIT_STRIDE)):
+        flow = _flow(distorted, valid, under, finest, scale)
+        sample = None if flow is None else _sample(flow, ok, cx, cy, shifts, scale, stride)
+        if sample is None:
+            return None
+        fit = _fit(sample, height, float(camera.focal), axes, limit, SLOW_MIN_PX / scale, alone=scale == 1)
+        if fit is _NEGLIGIBLE:
+            return None
+    if not isinstance(fit, _Fit):
+        return None
+    ref = np.where(np.isfinite(reference), reference, np.nan).astype(np.float32)
+    if not _eq13_prefers(ref, distorted.astype(np.float32), valid, camera, reference_origin_yx,
+                         distorted_origin_yx, fit):
+        return None
+    return fit.path
+
+
+#: Least normalised cross correlation of a band's gradients with the reference
+#: for its bulk shift to count.
+BULK_MIN_SCORE = 0.3
+
+
+def _bulk_shifts(reference, distorted, valid, dy, dx, band=64, reach=24):
+    """Whole-pixel (row, col) offsets (H, 2) of each capture row's content in
+    the reference window beyond its nominal position (``dy``, ``dx``).
+
+    Normalised cross correlation of smoothed x and y gradients (signed:
+    repetitive texture such as city blocks fools their magnitude): first the
+    capture's central part across the whole reference window, at a scale where
+    the capture is about 128 px wide; then bands of ``band`` rows from the
+    middle outwards at twice that scale, each sought within ``reach`` px of
+    the band before it (a rolling shutter shears the window by tens of pixels
+    over its rows, a few from one band to the next).  Matches below
+    :data:`BULK_MIN_SCORE` (no texture) keep the offset of the band before;
+    rows between band centres are interpolated."""
+    height, width = distorted.shape
+    coarse = max(1, int(width // 128))
+    start = _match(reference, distorted, valid, coarse, (height // 8, height - height // 8), None, 0)
+    expected = np.array((dy, dx) if start is None else start[:2], np.float64)  # capture -> window offset
+    # the bands are sought near the start: only that part of the window is needed
+    factor = max(1, int(width // 256))
+    pad = 2 * reach + band + 2 * factor
+    top = max(int(expected[0]) - pad, 0) // factor * factor
+    left = max(int(expected[1]) - pad, 0) // factor * factor
+    part = reference[top:int(expected[0]) + height + pad, left:int(expected[1]) + width + pad]
+    ref_g = _gradients(np.nan_to_num(part), np.isfinite(part), factor)
+    dist_g = _gradients(distorted, valid, factor)
+    expected -= (top, left)
+    dy, dx = dy - top, dx - left
+    tops = list(range(0, max(height - band, 0) + 1, band))
+    middle = len(tops) // 2
+    found = {}
+    for order in (tops[middle:], tops[:middle][::-1]):
+        guess = expected.copy()
+        for top in order:
+            match = _match(ref_g, dist_g, None, factor, (top, min(top + band, height)), guess, reach)
+            if match is not None:
+                guess = np.array(match[:2], np.float64)
+            found[top] = guess - (dy, dx)
+    centres = np.array(sorted(found)) + 0.5 * band
+    shifts = np.array([found[t] for t in sorted(found)])
+    rows = np.arange(height)
+    return np.stack([np.interp(rows, centres, shifts[:, q]) for q in (0, 1)], 1).round().astype(np.int64)
+
+
+def _gradients(image, ok, factor):
+    """Smoothed x and y derivatives of ``image`` reduced ``factor`` times."""
+    import cv2
+
+    image = np.where(ok, image, float(np.median(image[ok][::7])) if ok.any() else 0.0).astype(np.float32)
+    if factor > 1:
+        image = cv2.resize(image, (max(image.shape[1] // factor, 1), max(image.shape[0] // factor, 1)),
+                           interpolation=cv2.INTER_AREA)
+    image = cv2.GaussianBlur(image, (0, 0), 1.0)
+    return cv2.Sobel(image, cv2.CV_32F, 1, 0), cv2.Sobel(image, cv2.CV_32F, 0, 1)
+
+
+def _match(reference, distorted, valid, factor, rows, around, reach):
+    """Offset (row, col, score) of the capture rows ``rows`` (their central
+    three quarters of columns) in the reference window: capture pixel (r, c)
+    shows reference window pixel (r + row, c + col).  ``around`` None: sought
+    anywhere in the window (``reference`` and ``distorted`` are images);
+    else within ``reach`` px of the offset ``around`` (they are gradients at
+    ``factor``, :func:`_gradients`).  None below :data:`BULK_MIN_SCORE`."""
+    import cv2
+
+    if around is None:
+        ref_g = _gradients(np.nan_to_num(reference), np.isfinite(reference), factor)
+        dist_g = _gradients(distorted, valid, factor)
+        offset = (0, 0)
+    else:
+        ref_g, dist_g = reference, distorted
+    r0, r1 = rows[0] // factor, max(rows[1] // factor, rows[0] // factor + 2)
+    cols = dist_g[0].shape[1]
+    c0, c1 = cols // 8, cols - cols // 8
+    templates = [g[r0:r1, c0:c1] for g in dist_g]
+    if min(t.std() for t in templates) == 0:
+        return None
+    if around is not None:  # search only near the expected position
+        top = int(round(r0 + around[0] / factor)) - reach // factor
+        left = int(round(c0 + around[1] / factor)) - reach // factor
+        bottom, right = top + (r1 - r0) + 2 * (reach // factor), left + (c1 - c0) + 2 * (reach // factor)
+        top, left = max(top, 0), max(left, 0)
+        bottom, right = min(bottom, ref_g[0].shape[0]), min(right, ref_g[0].shape[1])
+        if bottom - top < r1 - r0 or right - left < c1 - c0:
+            return None
+        ref_g = [g[top:bottom, left:right] for g in ref_g]
+        offset = (top, left)
+    elif templates[0].shape[0] > ref_g[0].shape[0] or templates[0].shape[1] > ref_g[0].shape[1]:
+        return None
+    score = sum(cv2.matchTemplate(r, t, cv2.TM_CCOEFF_NORMED) for r, t in zip(ref_g, templates)) / 2
+    _, peak, _, (x, y) = cv2.minMaxLoc(score)
+    if not peak >= BULK_MIN_SCORE:
+        return None
+    return (y + offset[0] - r0) * factor, (x + offset[1] - c0) * factor, peak
+
+
+def _sheared_crop(image, top, left, shifts, width):
+    """Rows ``top + i + shifts[i, 0]`` of ``image``, columns from ``left +
+    shifts[i, 1]`` (``width`` of them), NaN beyond its edges."""
+    height = shifts.shape[0]
+    out = np.full((height, width), np.nan, dtype=np.float32)
+    for i in range(height):
+        r = top + i + shifts[i, 0]
+        if 0 <= r < image.shape[0]:
+            c = left + shifts[i, 1]
+            c0, c1 = max(c, 0), min(c + width, image.shape[1])
+            if c1 > c0:
+                out[i, c0 - c:c1 - c] = image[r, c0:c1]
+    return out
+
+
+def _flow(distorted, valid, under, finest, scale=1):
+    """DIS optical flow from the capture to the reference under it,
+    ``reference(x + flow(x)) ~ capture(x)``, of both images reduced ``scale``
+    times, refined down to pyramid level ``finest`` (0: that resolution):
+    (H // scale, W // scale, 2) in full-resolution pixels, and where flow can
+    be measured there (:func:`_textured`); None without texture."""
+    import cv2
+
+    def prep(image, ok):
+        fill = float(np.median(image[ok][::7])) if ok.any() else 0.0
+        image = np.where(ok, image, fill).astype(np.float32)
+        if scale > 1:
+            image = cv2.resize(image, (image.shape[1] // scale, image.shape[0] // scale),
+                               interpolation=cv2.INTER_AREA)
+        image = cv2.GaussianBlur(image, (0, 0), 1.0)
+        lo, hi = np.percentile(image[::3, ::3], [0.5, 99.5])
+        if not hi > lo:
+            return None
+        return np.clip((image - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+
+    a, b = prep(distorted, valid), prep(np.nan_to_num(under), np.isfinite(under))
+    if a is None or b is None:
+        return None
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    dis.setFinestScale(int(finest))
+    flow = dis.calc(a, b, None) * np.float32(scale)
+    return flow, _textured(a)
+
+
+def _textured(image, block=7, fraction=0.05):
+    """Pixels where flow can be measured: the smaller eigenvalue of the local
+    structure tensor (``block`` px) at least ``fraction`` of its 95th
+    percentile over the window (flat water, snow or roofs give flow noise)."""
+    import cv2
+
+    eig = cv2.cornerMinEigenVal(image, block)
+    return eig >= fraction * max(float(np.percentile(eig[::3, ::3], 95)), 1e-12)
+
+
+def _sample(flow, ok, cx, cy, shifts, scale=1, stride=FIT_STRIDE):
+    """Flow vectors (plus the per-row bulk ``shifts`` (H, 2) they started from)
+    on a grid of every ``stride`` capture pixels (the flow's grid is ``scale``
+    times coarser than the capture's) where both images are valid and flow can
+    be measured: (rows, x, y centred on the principal point, forward u, v)."""
+    flow, textured = flow
+    s = max(stride // scale, 2)
+    small_rows, small_cols = np.mgrid[s // 2:flow.shape[0]:s, s // 2:flow.shape[1]:s]
+    rows, cols = small_rows * scale + scale // 2, small_cols * scale + scale // 2
+    keep = ok[rows, cols] & textured[small_rows, small_cols]
+    if keep.sum() < 256:
+        return None
+    small_rows, small_cols, rows, cols = small_rows[keep], small_cols[keep], rows[keep], cols[keep]
+    # the flow maps capture to reference: the content moved by about its negative
+    u = -(flow[small_rows, small_cols, 0].astype(np.float64) + shifts[rows, 1])
+    v = -(flow[small_rows, small_cols, 1].astype(np.float64) + shifts[rows, 0])
+    return rows, cols - cx, rows - cy, u, v
+
+
+def _time(rows, height):
+    """Row times scaled to [-1, 1] over the window (the polynomials' variable)."""
+    return (np.asarray(rows, np.float64) - 0.5 * (height - 1)) / max(0.5 * height, 1.0)
+
+
+def _hats(rows, height):
+    """Linear interpolation weights (n, K) of ``rows`` between knots every
+    :data:`FIT_BAND` rows (the in-plane motion is piecewise linear in time)."""
+    knots = int(np.ceil((height - 1) / FIT_BAND)) + 1
+    position = np.clip(np.asarray(rows, np.float64) / FIT_BAND, 0, knots - 1)
+    low = np.minimum(np.floor(position).astype(np.int64), knots - 2) if knots > 1 else np.zeros(position.shape, int)
+    frac = position - low
+    out = np.zeros((position.size, knots))
+    out[np.arange(position.size), low] = 1.0 - frac
+    if knots > 1:
+        out[np.arange(position.size), low + 1] += frac
+    return out
+
+
+def _design(rows, x, y, focal, height, degree, axes):
+    """Jacobian of the forward displacement at zero rotation: per knot (tx, ty,
+    rz in rad), then per slow axis a polynomial of the row time (rad); rows
+    of u then v."""
+    hats = _hats(rows, height)
+    t = _time(rows, height)
+    cols_u, cols_v = [], []
+    for k in range(hats.shape[1]):
+        m = hats[:, k]
+        cols_u += [m, 0 * m, -y * m]
+        cols_v += [0 * m, m, x * m]
+    for a in axes:
+        for k in range(degree + 1):
+            tk = t ** k
+            if a == "ry":
+                cols_u.append((focal + x * x / focal) * tk)
+                cols_v.append(x * y / focal * tk)
+            else:
+                cols_u.append(x * y / focal * tk)
+                cols_v.append((focal + y * y / focal) * tk)
+    return np.concatenate([np.stack(cols_u, 1), np.stack(cols_v, 1)])
+
+
+class _Model:
+    """The exact flow of a path: the in-plane motion (tx, ty, rz) piecewise
+    linear between knots, slow rx, ry polynomials of the row time; parameters
+    in px and radians."""
+
+    def __init__(self, sample, height, focal, axes, degree):
+        self.rows, self.x, self.y, _, _ = sample
+        self.height, self.focal, self.axes, self.degree = height, focal, axes, degree
+        self.unique, self.row_index = np.unique(self.rows, return_inverse=True)
+        self.hats = _hats(self.unique, height)
+        self.knots = self.hats.shape[1]
+
+    def rotations(self, params, rows):
+        """Slow (rx, ry) in radians (n, 2) at ``rows``."""
+        t = _time(rows, self.height)
+        out = np.zeros((np.size(rows), 2))
+        base = 3 * self.knots
+        for q, a in enumerate(self.axes):
+            coef = params[base + q * (self.degree + 1):base + (q + 1) * (self.degree + 1)]
+            out[:, _AXES.index(a)] = sum(c * t ** k for k, c in enumerate(coef))
+        return out
+
+    def inplane(self, params, rows):
+        """(tx, ty px, rz rad) (n, 3) at ``rows``."""
+        return _hats(rows, self.height) @ params[:3 * self.knots].reshape(self.knots, 3)
+
+    def flow(self, params):
+        """Predicted capture -> reference offsets (u, v) of every sample."""
+        from ._camera import Camera, pose_homographies
+
+        inplane = self.hats @ params[:3 * self.knots].reshape(self.knots, 3)
+        poses = np.zeros((self.unique.size, 6))
+        poses[:, 0], poses[:, 1], poses[:, 5] = inplane[:, 0], inplane[:, 1], np.degrees(inplane[:, 2])
+        poses[:, 3:5] = np.degrees(self.rotations(params, self.unique))
+        # the sample coordinates are centred: a camera at the origin
+        inv = pose_homographies(poses, Camera(self.focal, (0.0, 0.0)), inverse=True)[self.row_index]
+        x, y = self.x, self.y
+        den = inv[:, 2, 0] * x + inv[:, 2, 1] * y + inv[:, 2, 2]
+        u = (inv[:, 0, 0] * x + inv[:, 0, 1] * y + inv[:, 0, 2]) / den - x
+        v = (inv[:, 1, 0] * x + inv[:, 1, 1] * y + inv[:, 1, 2]) / den - y
+        return u, v
+
+
+def _robust_fit(model, design, u, v, knee=0.5, iterations=7):
+    """Parameters of ``model`` that fit the flow (u, v): Gauss-Newton steps
+    with the zero-rotation Jacobian (the flow of the capture -> reference map
+    is about minus the forward displacement), each a weighted least squares
+    with Huber weights first (convex: the start does not matter), then Cauchy
+    weights, so flow caught in a wrong match weighs next to nothing.  Returns
+    the parameters and the samples' weights."""
+    params = np.zeros(design.shape[1])
+    weight = np.ones(u.size)
+    for it in range(iterations):
+        pu, pv = model.flow(params)
+        ru, rv = u - pu, v - pv
+        r = np.hypot(ru, rv)
+        weight = np.minimum(1.0, knee / np.maximum(r, 1e-9)) if it < 3 else 1.0 / (1.0 + (r / knee) ** 2)
+        step = _weighted_lstsq(-design, np.concatenate([ru, rv]), np.concatenate([weight, weight]))
+        params += step
+        if np.abs(step[3 * model.knots:]).max(initial=0.0) < 1e-6 and it >= 3:
+            break
+    return params, weight
+
+
+def _weighted_lstsq(design, target, weight):
+    """argmin_p sum weight (design p - target)^2 by the normal equations (a few
+    dozen unknowns), with a tiny ridge for bands without samples."""
+    gram = design.T @ (design * weight[:, None])
+    rhs = design.T @ (target * weight)
+    gram[np.diag_indices_from(gram)] += 1e-9 * (np.trace(gram) / len(gram) + 1e-12)
+    return np.linalg.solve(gram, rhs)
+
+
+_NEGLIGIBLE, _UNTRUSTED = "negligible", "untrusted"
+
+
+class _Fit(NamedTuple):
+    """A slow path fitted to the flow, with the in-plane motion (tx, ty px, rz
+    deg; (H, 3)) that goes with it and the one that fits the flow without it."""
+
+    path: SlowPath
+    inplane: np.ndarray
+    inplane_alone: np.ndarray
+
+
+def _fit(sample, height, focal, axes, limit, min_px=SLOW_MIN_PX, alone=True):
+    """The slow path of the sampled flow (a :class:`_Fit`; its in-plane motion
+    alone only when ``alone``), or :data:`_NEGLIGIBLE`: the displacement that
+    only the slow axes explain stays below ``min_px`` everywhere, or
+    :data:`_UNTRUSTED`: a rotation beyond ``limit``."""
+    rows, x, y, u, v = sample
+    degree = 2 if height >= 8 * FIT_BAND else (1 if height >= 4 * FIT_BAND else 0)
+    model = _Model(sample, height, focal, axes, degree)
+    design = _design(rows, x, y, focal, height, degree, axes)
+    params, weight = _robust_fit(model, design, -u, -v)
+    n_inplane = 3 * model.knots
+    # what the in-plane motion alone makes of the slow part's displacement:
+    # the part that only the slow axes explain decides whether it matters
+    slow_part = design[:, n_inplane:] @ params[n_inplane:]
+    inplane_only = design[:, :n_inplane]
+    absorbed = inplane_only @ _weighted_lstsq(inplane_only, slow_part, np.concatenate([weight, weight]))
+    if np.percentile(np.abs(slow_part - absorbed), 99) < min_px:
+        return _NEGLIGIBLE
+    every = np.arange(height)
+    rotation = np.degrees(model.rotations(params, every))
+    if np.abs(rotation).max() > limit:
+        return _UNTRUSTED
+    inplane = model.inplane(params, every)
+    path = SlowPath(rotation, inplane[:, 1])
+    if not alone:
+        return _Fit(path, None, None)
+    without = _Model(sample, height, focal, (), 0)
+    without_params, _ = _robust_fit(without, inplane_only, -u, -v)
+    return _Fit(path, _degrees(inplane), _degrees(without.inplane(without_params, every)))
+
+
+def _degrees(inplane):
+    out = inplane.copy()
+    out[:, 2] = np.degrees(out[:, 2])
+    return out
+
+
+def _eq13_prefers(reference, distorted, valid, camera, reference_origin_yx, distorted_origin_yx, fit):
+    """Whether eq. 13 prefers the slow path: blocks of rows spread over the
+    window are solved jointly (as the start block is) around the fitted
+    in-plane motion, on the reference pre-warped by the slow path and on the
+    reference alone; the slow path wins when its summed cost per pixel is
+    lower by :data:`SLOW_EQ13_GAIN`."""
+    from ._params import RegistrationParams
+    from ._rowproblem import _RowProblem, _Solver
+    from ._start import _refine_start
+
+    params = RegistrationParams(slow_axes=()).resolved(camera)
+    height = distorted.shape[0]
+    centres = [int((k + 0.5) * height / SLOW_BLOCKS) for k in range(SLOW_BLOCKS)]
+    half = params.block_rows // 2
+    steps = np.asarray(params.step)
+    cost = []
+    for slow, inplane in ((fit.path, fit.inplane), (None, fit.inplane_alone)):
+        margin = int(np.ceil(np.abs(inplane[:, :2]).max() + 4 * max(params.half_width[:2]))) + 8
+        problem = _RowProblem(reference, distorted, valid, camera, reference_origin_yx, distorted_origin_yx,
+                              params.axes, params.step, margin, 2 * half + 12, slow)
+        solver = _Solver(problem, params)
+        total = 0.0
+        for r in centres:
+            block = np.arange(max(r - half, 0), min(r + half + 1, height))
+            total += _refine_start(solver, inplane[r], block, steps, iterations=1)[2]
+        cost.append(total)
+    return bool(cost[0] < (1.0 - SLOW_EQ13_GAIN) * cost[1])
