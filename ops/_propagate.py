@@ -121,8 +121,9 @@ def _row_step(stack, gather, y, x0, g_row, g_valid, w, settings, a, reg_out, chi
     ``gather.shift_y[k]``, ``gather.shift_x[k]``) into the work array ``a``
     (K, N), solve eq. 13 warm-started from ``w`` (in place), and write the
     registered row, the change term and the validity into the outputs (NaN / 0
-    / False where invalid).  Returns (objective, valid pixel count); the
-    objective is inf when too few pixels are valid to solve.
+    / False where invalid).  Returns (objective, valid pixel count, whether
+    the solve converged); the objective is inf when too few pixels are valid
+    to solve.
     """
     k_count, n = a.shape
     delta = settings.delta
@@ -146,8 +147,9 @@ def _row_step(stack, gather, y, x0, g_row, g_valid, w, settings, a, reg_out, chi
             valid_out[j] = False
             reg_out[j] = np.nan
             chi_out[j] = 0.0
-        return np.inf, count
-    obj, _, _ = _solve_huber_nn(a, g, w, settings.lam, delta, settings.tol, settings.max_outer, settings.max_add)
+        return np.inf, count, True
+    obj, iterations, _ = _solve_huber_nn(a, g, w, settings.lam, delta, settings.tol, settings.max_outer,
+                                         settings.max_add)
     reg = np.empty(n)
     _synthesize(a, w, reg)
     for j in range(n):
@@ -163,7 +165,7 @@ def _row_step(stack, gather, y, x0, g_row, g_valid, w, settings, a, reg_out, chi
         else:
             reg_out[j] = np.nan
             chi_out[j] = 0.0
-    return obj, count
+    return obj, count, iterations < settings.max_outer
 
 
 @numba.njit(**_SUMS)
@@ -172,8 +174,9 @@ def _solve_at(pose, i, prewarp, lattice, settings, capture, out, prev_center, w_
     weights ``w_prev`` of a grid centred at ``prev_center`` (None-like: a
     negative first entry of ``prev_center`` is never used, see the caller).
     Writes the row's outputs, ``w`` and ``center``.  Returns (status, other
-    lattice index, band, cost per valid pixel, valid count): status 0 solved,
-    1 a pre-warped image is missing, 2 the grid left the table."""
+    lattice index, band, cost per valid pixel, valid count, negative when the
+    solve stopped at its iteration limit): status 0 solved, 1 a pre-warped
+    image is missing, 2 the grid left the table."""
     table, other_lo, band_lo = prewarp.table, prewarp.other_lo, prewarp.band_lo
     offsets, counts, step = lattice.offsets, lattice.counts, lattice.step
     ty_dim, tx_dim, other_dim = lattice.ty_dim, lattice.tx_dim, lattice.other_dim
@@ -209,9 +212,10 @@ def _solve_at(pose, i, prewarp, lattice, settings, capture, out, prev_center, w_
             src = src * counts[d] + m
         if inside:
             w[k] = w_prev[src]
-    objective, count = _row_step(prewarp.stack, gather, y, prewarp.margin, capture.dist[i], capture.dist_valid[i],
-                                 w, settings, a, out.registered[i], out.chi[i], out.valid[i])
-    return 0, 0, 0, objective / max(count, 1), count
+    objective, count, converged = _row_step(prewarp.stack, gather, y, prewarp.margin, capture.dist[i],
+                                            capture.dist_valid[i], w, settings, a, out.registered[i], out.chi[i],
+                                            out.valid[i])
+    return 0, 0, 0, objective / max(count, 1), count if converged else -count
 
 
 @numba.njit(**_SUMS)
@@ -273,7 +277,7 @@ def _propagate_rows(prewarp, lattice, settings, capture, out, rows, prev, c_prev
         for d in range(dims):
             out.centers[i, d] = center[d]
         out.row_gain[i] = total
-        if total <= 0.0 or count == 0:
+        if total <= 0.0 or count <= 0:  # nothing fitted, or unconverged: failed
             out.row_state[i] = 3
             continue
         if trust[2 * dims + 1] == 0.0 and _jumps(c_own, i, lattice.px_per_unit, trust, predicted):
@@ -398,7 +402,8 @@ class _Propagation:
         w = np.zeros(self.size) if w0 is None else w0
         if self._a is None:
             self._a = np.empty((self.size, problem.width), dtype=np.float32)
-        objective, count = _row_step(problem.stack, _Gather(slot, shift_y, shift_x), int(y), problem.margin,
+        objective, count, solver.last_converged = _row_step(problem.stack, _Gather(slot, shift_y, shift_x), int(y),
+                                                            problem.margin,
                                      problem.dist[i], problem.dist_valid[i], w, solver.settings(problem.width),
                                      self._a, out.registered[i], out.chi[i], out.valid[i])
         solver.last_cost = objective / max(count, 1)
@@ -424,7 +429,7 @@ class _Propagation:
                     out.row_state[i] = 2
                     continue
                 c = self.solve_row(i, c_prev, prev)
-                if c is None or not out.valid[i].any():
+                if c is None or not out.valid[i].any() or not self.solver.last_converged:
                     out.row_state[i] = 3
                     continue
                 c = np.asarray(c, np.float64)
@@ -494,7 +499,7 @@ class _Propagation:
                 # outside the table: this row the Python way, then carry on
                 i = rows[pos]
                 c = self.solve_row(i, out.trajectory[prev], prev)
-                if c is None or not out.valid[i].any():
+                if c is None or not out.valid[i].any() or not self.solver.last_converged:
                     out.row_state[i] = 3
                 else:
                     out.trajectory[i], out.row_state[i], prev = c, 1, i

@@ -47,7 +47,9 @@ class Registration:
     row_gain : ndarray, shape (H,)
         ``||w_i||_1`` per row (the illumination gain seen by that row).
     row_state : ndarray, shape (H,), uint8
-        1 solved, 2 homogeneous (centroid interpolated), 3 failed (no fit).
+        1 solved, 2 homogeneous (centroid interpolated), 3 failed (no fit, or
+        the solve stopped at ``params.max_outer`` iterations before
+        converging; centroid interpolated).
     axes : tuple of str
     timings : dict
     """
@@ -232,6 +234,7 @@ def _register_global(solver, candidates, informative, out):
     center, spread = _choose_start(solver, candidates, rows)
     space = params.space.widened(_adapted_half_width(params.space, spread))
     index, poses, w, _, _ = solver.solve(rows, space, center)
+    converged = solver.last_converged
     c = _centroid(poses, w)
     keep = w > 0
     index, poses, w = index[keep], poses[keep], w[keep]
@@ -239,7 +242,7 @@ def _register_global(solver, candidates, informative, out):
         a, g, valid = solver.problem.build([i], index, poses)
         out.store(i, w, a, valid, solver.problem.dist[i].astype(np.float64), solver.delta)
         out.trajectory[i] = c if c is not None else center
-        out.row_state[i] = 1 if informative[i] else 2
+        out.row_state[i] = (1 if converged else 3) if informative[i] else 2
 
 
 def _register_prior(solver, prior, informative, out):
@@ -254,7 +257,7 @@ def _register_prior(solver, prior, informative, out):
         index, poses, w, a, valid = solver.solve([i], space, prior[i], w0)
         out.store(i, w, a, valid, solver.problem.dist[i].astype(np.float64), solver.delta)
         c = _centroid(poses, w)
-        good = informative[i] and c is not None and valid.any()
+        good = informative[i] and c is not None and valid.any() and solver.last_converged
         out.trajectory[i] = c if good else prior[i]
         out.row_state[i] = 1 if good else (2 if not informative[i] else 3)
         previous = (space.snap(prior[i]), w)

@@ -201,6 +201,8 @@ class _Solver:
         self.problem = problem
         self.params = params
         self.delta = 0.5 * params.lambda_chi
+        self.last_cost = np.inf
+        self.last_converged = True  # the last solve met the KKT conditions before the iteration limit
 
     @property
     def fast_rows(self):
@@ -223,6 +225,7 @@ class _Solver:
         index, poses = space.grid(center)
         a, g, valid = self.problem.build(rows, index, poses)
         self.last_cost = np.inf
+        self.last_converged = True
         if valid.sum() < self.min_valid(valid.size):
             # too little of the row sees the reference: nothing to solve
             valid[:] = False
@@ -233,8 +236,9 @@ class _Solver:
             w, objective = np.maximum(solution.w, 0.0), solution.objective
         else:
             w = np.zeros(len(poses)) if w0 is None else w0.copy()
-            objective, _, _ = _solve_huber_nn(a, g, w, self.params.lambda_w, self.delta, self.params.tol,
-                                              self.params.max_outer, self.params.max_add)
+            objective, iterations, _ = _solve_huber_nn(a, g, w, self.params.lambda_w, self.delta, self.params.tol,
+                                                       self.params.max_outer, self.params.max_add)
+            self.last_converged = iterations < self.params.max_outer
         self.last_cost = objective / valid.sum()  # eq. 13 per valid pixel, comparable across grids
         return index, poses, w, a, valid
 

@@ -225,7 +225,9 @@ def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
     """Minimise sum rho(g - a' w) + lam sum w over w >= 0 (in place).
 
     ``a`` (K, N) float32 with zero columns for invalid pixels, ``g`` (N,) with
-    zeros there.  Returns (objective, outer iterations, final KKT violation).
+    zeros there.  Returns (objective, outer iterations, final KKT violation);
+    the iterations equal ``max_outer`` when the limit stopped the solve before
+    the KKT conditions held (unconverged).
     """
     k_count, n = a.shape
     r = np.empty(n)
@@ -356,9 +358,9 @@ def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
         if obj - new_obj <= 1e-14 * obj:
             # no progress left: the remaining KKT residual is rounding (the
             # Cholesky ridge), not a better point
-            return new_obj, it + 1, viol
+            return new_obj, it, viol
         obj = new_obj
-    return obj, it, viol
+    return obj, max_outer, viol  # the iteration limit, unconverged
 
 
 @numba.njit(**_SUMS)

@@ -127,6 +127,10 @@ class DetectResult:
     reference_coverage : float or None
         Fraction of the capture's footprint the reference set covers
         (georeferenced pairing); the rest is no-data, never change.
+    failed_rows : int
+        Tile rows whose solve failed (no fit, or stopped at the iteration
+        limit before converging; ``tile_row_state`` 3): their pose is
+        interpolated from the rows around them.
     """
 
     output: str
@@ -147,6 +151,7 @@ class DetectResult:
     timings: dict
     pairing: str = "pixel"
     reference_coverage: float | None = None
+    failed_rows: int = 0
 
     def as_dict(self):
         """The fields as a JSON-ready dict."""
@@ -530,7 +535,8 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             tile_agreement_px_max=float(np.nanmax(agree)) if np.isfinite(agree).any() else None,
             tasks_per_tile=tasks_per_tile, megapixels_per_s=shape[0] * shape[1] / 1e6 / timings["total_s"],
             timings=timings, pairing=plan.pairing.mode,
-            reference_coverage=None if plan.pairing.coverage is None else plan.pairing.coverage.fraction)
+            reference_coverage=None if plan.pairing.coverage is None else plan.pairing.coverage.fraction,
+            failed_rows=int((group["tile_row_state"][:] == 3).sum()))
         _finish(group, store, plan, result, scheduler, overwrite, geotiff)
         return result
     except BaseException as error:

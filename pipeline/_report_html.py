@@ -45,6 +45,7 @@ _SUMMARY_LABELS = {
     "tile_agreement_px_max": "largest tile disagreement, px",
     "tasks_per_tile": "tasks per tile",
     "megapixels_per_s": "throughput, megapixels/s",
+    "failed_rows": "failed tile rows (no fit, or unconverged)",
 }
 
 

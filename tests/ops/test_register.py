@@ -181,3 +181,19 @@ def test_start_lattice_is_coarsened_only_where_rz_steps_are_fine():
     assert near[2] > 1 and near_coarse[2] == 2 * near[2]
     paper, paper_coarse = strides(0.5, (0, 0))
     assert list(paper) == list(paper_coarse) == [1, 1, 1]
+
+
+def test_rows_stopped_at_the_iteration_limit_are_failed():
+    """A row solve that stops at ``max_outer`` before its KKT conditions hold
+    is failed (state 3), not solved; its pose is interpolated from the rows
+    around it.  With the default limit only the rows whose content left the
+    reference fail, and a limit ten times larger changes nothing."""
+    pair = ops.synthesize_pair((128, 128), motion="inplane", changes=0, noise=0.002, seed=6)
+    default = ops.register(pair.reference, pair.distorted, params=_params())
+    outside = default.valid.mean(axis=1) < 0.1
+    np.testing.assert_array_equal(default.row_state == 3, outside)
+    larger = ops.register(pair.reference, pair.distorted, params=_params(max_outer=1000))
+    np.testing.assert_array_equal(larger.row_state, default.row_state)
+    starved = ops.register(pair.reference, pair.distorted, params=_params(max_outer=1))
+    assert ((starved.row_state == 3) & ~outside).sum() > 10
+    assert np.isfinite(starved.trajectory).all()

@@ -200,3 +200,17 @@ def test_overlay_colours():
     assert any(abs(r - 25) == 3 for r, _ in ring)  # ring drawn around the dot
     assert rgb[1, 1, 2] > rgb[1, 1, 0]  # NaN drawn bluish
     assert rgb[5, 5, 2] > rgb[5, 5, 0] or rgb[5, 5, 1] > rgb[5, 5, 0]  # faint cyan grid (col 5)
+
+
+def test_failed_rows_are_counted_in_the_summary_and_the_report(tmp_path, small_pair_files):
+    """Rows stopped at the iteration limit are failed: the run summary counts
+    them and the report says so."""
+    from rsmb.ops import RegistrationParams
+
+    _, ref, dist = small_pair_files
+    config = pipeline.DetectConfig(registration=RegistrationParams(max_outer=1), tile=128)
+    result = pipeline.detect(ref, dist, tmp_path / "o.zarr", config=config)
+    states = zarr.open_group(str(tmp_path / "o.zarr"), mode="r")["tile_row_state"][:]
+    assert result.failed_rows == int((states == 3).sum()) > 0
+    page = write_report(tmp_path / "o.zarr").read_text()
+    assert f"failed tile rows (no fit, or unconverged)</td><td class=\"num\">{result.failed_rows}<" in page
