@@ -25,6 +25,7 @@ from ._changes import (
 )
 from ._errors import InputError, ParameterError, RSMBError, RunError, SolverError
 from ._forward import CameraPath, RenderResult, render
+from ._intensity import IntensityScale, intensity_scale
 from ._metrics import ConfusionCounts, confusion, trajectory_rmse
 from ._oracle import ExactRowSolution, huber_objective, optimal_chi, row_objective, solve_row_exact
 from ._posespace import PoseSpace
@@ -54,6 +55,8 @@ __all__ = [
     "RenderResult",
     "render",
     "RegistrationParams",
+    "IntensityScale",
+    "intensity_scale",
     "Registration",
     "register",
     "SlowPath",

@@ -20,11 +20,20 @@ def _row_energy(distorted, valid):
     return np.where(count > 0, (grad * ok).sum(axis=1) / np.maximum(count, 1), 0.0)
 
 
-def _gradients(image):
+def _gradients(image, valid=None):
     """Smoothed x and y derivatives, float32: correlating these rather than
-    intensities keeps large changed objects from dominating the score."""
-    image = cv2.GaussianBlur(np.nan_to_num(image).astype(np.float32), (0, 0), 1.0)
-    return cv2.Sobel(image, cv2.CV_32F, 1, 0), cv2.Sobel(image, cv2.CV_32F, 0, 1)
+    intensities keeps large changed objects from dominating the score.  No-data
+    (NaN, or False in ``valid``: clipped highlights, the edge of the
+    reference) has no gradient, and neither has its border: filling it with
+    any value would draw edges that the correlation follows."""
+    ok = np.isfinite(image) if valid is None else valid & np.isfinite(image)
+    image = np.where(ok, image, float(np.median(image[ok])) if ok.any() else 0.0).astype(np.float32)
+    image = cv2.GaussianBlur(image, (0, 0), 1.0)
+    gx, gy = cv2.Sobel(image, cv2.CV_32F, 1, 0), cv2.Sobel(image, cv2.CV_32F, 0, 1)
+    if not ok.all():
+        near = cv2.dilate((~ok).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        gx[near], gy[near] = 0.0, 0.0
+    return gx, gy
 
 
 def _coarse_search(problem, params, rows, count=4):
@@ -46,7 +55,7 @@ def _coarse_search(problem, params, rows, count=4):
     pad = 4
     lo, hi = max(r0 - pad, 0), min(r1 + pad, problem.dist.shape[0])
     templates = [t[r0 - lo:t.shape[0] - (hi - r1), margin_x:width - margin_x].copy()
-                 for t in _gradients(problem.dist[lo:hi])]
+                 for t in _gradients(problem.dist[lo:hi], problem.dist_valid[lo:hi])]
     if min(t.std() for t in templates) == 0:
         return [np.zeros(len(axes))], uncertainty
     rz_values = [0.0]
@@ -66,11 +75,12 @@ def _coarse_search(problem, params, rows, count=4):
     for rz in rz_values:
         pose = full_poses(np.array([[rz]]), ("rz",))
         img = np.empty((band.size, width), dtype=np.float32)
+        seen = np.empty((band.size, width), dtype=bool)
         for q, i in enumerate(band):
-            _build_row(problem.ref, float(i + problem.dy), float(problem.dx), problem.with_slow(pose, i), problem.focal,
-                       problem.cx, problem.cy, buf)
+            seen[q] = _build_row(problem.ref, float(i + problem.dy), float(problem.dx), problem.with_slow(pose, i),
+                                 problem.focal, problem.cx, problem.cy, buf) != 0
             img[q] = buf[0]
-        score = sum(cv2.matchTemplate(i, t, cv2.TM_CCOEFF_NORMED) for i, t in zip(_gradients(img), templates))
+        score = sum(cv2.matchTemplate(i, t, cv2.TM_CCOEFF_NORMED) for i, t in zip(_gradients(img, seen), templates))
         for peak, (x, y) in _local_maxima(score, 2):
             peaks.append((peak, margin_x - x, margin_y - y, rz))
     peaks.sort(key=lambda p: -p[0])

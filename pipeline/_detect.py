@@ -131,6 +131,9 @@ class DetectResult:
         Tile rows whose solve failed (no fit, or stopped at the iteration
         limit before converging; ``tile_row_state`` 3): their pose is
         interpolated from the rows around them.
+    clipped_reference, clipped_capture : float
+        Fraction of each image's valid pixels that are clipped (at zero or at
+        a saturation value; no-data, never change; :mod:`ops._intensity`).
     """
 
     output: str
@@ -152,6 +155,8 @@ class DetectResult:
     pairing: str = "pixel"
     reference_coverage: float | None = None
     failed_rows: int = 0
+    clipped_reference: float = 0.0
+    clipped_capture: float = 0.0
 
     def as_dict(self):
         """The fields as a JSON-ready dict."""
@@ -284,10 +289,13 @@ def _plan(references, distorted, output, config):
 def _ingest(runner, group, run, plan, timings):
     """Stage 2: both inputs into the store, one task per block of each: the
     capture on its own grid, the reference resampled onto it (with a margin
-    around it when georeferenced)."""
+    around it when georeferenced).  Returns the run's store with the two
+    images' common intensity scale and clip levels (:func:`ops.intensity_scale`),
+    recorded in the ``intensity`` attribute."""
     t0 = time.perf_counter()
     if group.attrs.get("ingest_complete"):
         log.info("ingest: already complete (resume)")
+        scale = ops.IntensityScale.from_dict(group.attrs["intensity"])
     else:
         m = plan.margin
         capture = functools.partial(tiles.read_clipped, plan.distorted.path, plan.shape)
@@ -295,10 +303,15 @@ def _ingest(runner, group, run, plan, timings):
         jobs += [(run, "ingest/reference", plan.pairing.reference_window, b, (m, m)) for b in plan.reference_blocks]
         stats = runner.map("ingest", _tasks.ingest_task, jobs)
         n = len(plan.blocks)
-        tiles.check_stats(sum(stats[1:n], stats[0]), plan.distorted.path)
-        tiles.check_stats(sum(stats[n + 1:], stats[n]), ", ".join(r.path for r in plan.references))
+        names = (", ".join(r.path for r in plan.references), plan.distorted.path)
+        capture_stats, reference_stats = sum(stats[1:n], stats[0]), sum(stats[n + 1:], stats[n])
+        tiles.check_stats(capture_stats, names[1])
+        tiles.check_stats(reference_stats, names[0])
+        scale = ops.intensity_scale(reference_stats, capture_stats, names=names)
+        group.attrs["intensity"] = tiles.jsonable(scale.as_dict())
         group.attrs["ingest_complete"] = True
     timings["ingest_s"] = time.perf_counter() - t0
+    return dataclasses.replace(run, intensity=scale)
 
 
 def _register_tiles(runner, group, run, plan, resume, timings):
@@ -519,7 +532,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             shape, grid = plan.shape, plan.grid
             log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", plan.distorted.path, shape[0],
                      shape[1], len(grid), grid.tile, grid.halo, scheduler)
-            _ingest(runner, group, run, plan, timings)
+            run = _ingest(runner, group, run, plan, timings)
             slow_stage(runner, group, run, plan, timings)
             _register_tiles(runner, group, run, plan, resume, timings)
             fused, hist, gains, agree, resolve = _fuse_paths(runner, group, run, plan, timings)
@@ -536,7 +549,8 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             tasks_per_tile=tasks_per_tile, megapixels_per_s=shape[0] * shape[1] / 1e6 / timings["total_s"],
             timings=timings, pairing=plan.pairing.mode,
             reference_coverage=None if plan.pairing.coverage is None else plan.pairing.coverage.fraction,
-            failed_rows=int((group["tile_row_state"][:] == 3).sum()))
+            failed_rows=int((group["tile_row_state"][:] == 3).sum()),
+            clipped_reference=run.intensity.reference_clipped, clipped_capture=run.intensity.capture_clipped)
         _finish(group, store, plan, result, scheduler, overwrite, geotiff)
         return result
     except BaseException as error:

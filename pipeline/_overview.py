@@ -48,25 +48,22 @@ def _overview(runner, run, name, blocks, shape, phase, factor):
 
 def slow_stage(runner, group, run, plan, timings):
     """Stage 2b: the slow part of the path (``plan.params.slow_axes``) from the
-    overviews of the ingested capture and reference, written to the store's
-    ``work/slow`` (rx, ry in degrees, ty in px per capture row; NaN when there
-    is none).  Returns the per-row array or None."""
+    overviews of the ingested capture and reference on the common intensity
+    scale, written to the store's ``work/slow`` (rx, ry in degrees, ty in px
+    per capture row; NaN when there is none)."""
     t0 = time.perf_counter()
     if not plan.params.slow_axes:
-        return None
-    if group.attrs.get("slow_complete"):
-        found = group["work/slow"][:]
-    else:
-        found = _find_slow(runner, run, plan)
-        group["work/slow"][:] = found
+        return
+    if not group.attrs.get("slow_complete"):
+        group["work/slow"][:] = _find_slow(runner, run, plan)
         group.attrs["slow_complete"] = True
     timings["slow_s"] = time.perf_counter() - t0
-    if not np.isfinite(found).any():
+    found = group["work/slow"][:]
+    if np.isfinite(found).any():
+        log.info("slow out-of-plane rotation: rx %.2f..%.2f deg, ry %.2f..%.2f deg", np.nanmin(found[:, 0]),
+                 np.nanmax(found[:, 0]), np.nanmin(found[:, 1]), np.nanmax(found[:, 1]))
+    else:
         log.info("slow out-of-plane rotation: none found")
-        return None
-    log.info("slow out-of-plane rotation: rx %.2f..%.2f deg, ry %.2f..%.2f deg", np.nanmin(found[:, 0]),
-             np.nanmax(found[:, 0]), np.nanmin(found[:, 1]), np.nanmax(found[:, 1]))
-    return found
 
 
 def _find_slow(runner, run, plan):
@@ -74,8 +71,8 @@ def _find_slow(runner, run, plan):
     factor, margin = overview_factor(plan.shape), plan.margin
     phase = margin % factor  # reference cells aligned with the capture's
     ref_shape = (plan.shape[0] + 2 * margin, plan.shape[1] + 2 * margin)
-    capture = _overview(runner, run, "ingest/distorted", plan.blocks, plan.shape, 0, factor)
-    reference = _overview(runner, run, "ingest/reference", plan.reference_blocks, ref_shape, phase, factor)
+    capture = _overview(runner, run, "capture", plan.blocks, plan.shape, 0, factor)
+    reference = _overview(runner, run, "reference", plan.reference_blocks, ref_shape, phase, factor)
     offset = -((margin - phase) // factor)  # the reference overview's cell 0 in capture cells
     cam = plan.camera
     camera = ops.Camera(cam.focal / factor, tuple((c - 0.5 * (factor - 1)) / factor for c in cam.center_xy))

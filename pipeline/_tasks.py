@@ -89,6 +89,19 @@ class RunStore:
     path: str
     key: str
     reference_offset: int = 0  # the reference array holds capture pixel (r, c) at (r + offset, c + offset)
+    intensity: ops.IntensityScale | None = None  # the inputs' common scale, known once ingested
+
+    def read(self, name, rows, cols):
+        """Window ``rows``, ``cols`` of the capture grid of the ingested image
+        ``name`` ("reference" or "capture") on the common scale, NaN where
+        clipped, no-data or beyond the array."""
+        if name == "reference":
+            m = self.reference_offset
+            values = read_padded(_array(self, "ingest/reference"), slice(rows.start + m, rows.stop + m),
+                                 slice(cols.start + m, cols.stop + m))
+        else:
+            values = read_padded(_array(self, "ingest/distorted"), rows, cols)
+        return values if self.intensity is None else self.intensity.apply(values, name)
 
 
 @functools.lru_cache(maxsize=32)
@@ -103,9 +116,22 @@ def ingest_task(store, name, read, block, offset):
 
 
 def overview_task(store, name, block, factor, phase):
-    """The cells of the overview of the ingested array ``name`` that start in
-    one block's core (:func:`tiles.block_overview`)."""
-    return tiles.block_overview(_array(store, name), block.core, factor, phase)
+    """The cells of the overview of the ingested image ``name`` ("reference"
+    or "capture", on the common scale) that start in one block's core
+    (:func:`tiles.block_overview`)."""
+    array = _array(store, "ingest/reference" if name == "reference" else "ingest/distorted")
+    return tiles.block_overview(_Scaled(array, store.intensity, name), block.core, factor, phase)
+
+
+class _Scaled:
+    """An ingested array read on the common intensity scale (slicing only)."""
+
+    def __init__(self, array, intensity, name):
+        self.array, self.intensity, self.name, self.shape = array, intensity, name, array.shape
+
+    def __getitem__(self, key):
+        values = self.array[key]
+        return values if self.intensity is None else self.intensity.apply(values, self.name)
 
 
 def _slow_prior(store, tile, params):
@@ -132,22 +158,20 @@ def register_task(store, tile, camera, params, prior=None):
     start = time.perf_counter()
     ty, tx = tile.index
     h, w = tile.core_shape
-    m = store.reference_offset
-    rows, cols = tile.window
-    reference = read_padded(_array(store, "ingest/reference"), slice(rows.start + m, rows.stop + m),
-                            slice(cols.start + m, cols.stop + m))
-    distorted = _array(store, "ingest/distorted")[tile.core]
+    reference = store.read("reference", *tile.window)
+    distorted = store.read("capture", *tile.core)
     read = time.perf_counter() - start
     dist_valid = np.isfinite(distorted)
     result = ops.register(reference, np.nan_to_num(distorted), camera=camera, params=params,  # NaN: nodata
                           reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
                           distorted_valid=dist_valid, prior=prior, slow=_slow_prior(store, tile, params))
     tile.check_core(result.registered)
-    score = np.abs(result.chi)
+    score = np.where(result.valid, np.abs(result.chi), np.nan)  # no-data where unknown or clipped
     residual = np.where(result.valid, distorted - result.registered, 0.0)
     hist = ops.score_histogram(residual, score, result.valid)
     write_start = time.perf_counter()
-    _array(store, "registered")[tile.core] = result.registered
+    registered = result.registered if store.intensity is None else store.intensity.to_input(result.registered)
+    _array(store, "registered")[tile.core] = registered  # in the capture's units
     _array(store, "change_score")[tile.core] = score.astype(np.float32)
     _array(store, "work/tile_rows")[tile.core[0], tx] = np.concatenate(
         [result.trajectory, result.row_state[:, None]], axis=1).astype(np.float32)

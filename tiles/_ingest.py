@@ -11,7 +11,7 @@ write and decode the image several times over when halos are large, to save
 a few chunk reads per tile.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -24,18 +24,31 @@ __all__ = ["ingest_core", "block_overview", "overview_cells", "read_clipped", "r
 
 @dataclass(frozen=True)
 class WindowStats:
-    """Range of the valid values of one ingested tile (to reject constant images)."""
+    """The valid values of one ingested block: their count and range, how
+    many sit at each end of the range, and a strided sample of them (every
+    ``count // SAMPLE``-th value), which blocks add up to the image's."""
 
     count: int
     low: float
     high: float
+    at_low: int = 0
+    at_high: int = 0
+    sample: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32), compare=False)
 
     def __add__(self, other):
         if self.count == 0:
             return other
         if other.count == 0:
             return self
-        return WindowStats(self.count + other.count, min(self.low, other.low), max(self.high, other.high))
+        low, high = min(self.low, other.low), max(self.high, other.high)
+        at_low = (self.at_low if self.low == low else 0) + (other.at_low if other.low == low else 0)
+        at_high = (self.at_high if self.high == high else 0) + (other.at_high if other.high == high else 0)
+        return WindowStats(self.count + other.count, low, high, at_low, at_high,
+                           np.concatenate([self.sample, other.sample]))
+
+
+#: Values each block keeps for the image's percentiles.
+SAMPLE = 8192
 
 
 def read_clipped(path, shape, rows, cols):
@@ -55,7 +68,9 @@ def _stats(data):
     values = data[np.isfinite(data)]
     if values.size == 0:
         return WindowStats(0, np.inf, -np.inf)
-    return WindowStats(int(values.size), float(values.min()), float(values.max()))
+    low, high = float(values.min()), float(values.max())
+    return WindowStats(int(values.size), low, high, int((values == low).sum()), int((values == high).sum()),
+                       values[::max(1, values.size // SAMPLE)].astype(np.float32))
 
 
 def read_padded(array, rows, cols):

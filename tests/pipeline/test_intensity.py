@@ -1,0 +1,120 @@
+"""One intensity scale for any bit depth and unit, and clipped pixels as
+no-data (ops._intensity): detect on the same pair stored in four ways, and on
+a capture brighter than its reference with clipped highlights."""
+
+import cv2
+import numpy as np
+import pytest
+
+from rsmb import ops
+from rsmb.pipeline import DetectConfig, detect, evaluate, write_pair
+
+from .conftest import read_store
+
+SHAPE = (256, 256)
+
+
+def _geotiff(path, data):
+    import rasterio
+
+    with rasterio.open(path, "w", driver="GTiff", height=data.shape[0], width=data.shape[1], count=1,
+                       dtype=data.dtype) as ds:
+        ds.write(data, 1)
+    return path
+
+
+def _png16(path, data):
+    assert cv2.imwrite(str(path), data.astype(np.uint16))
+    return path
+
+
+FORMATS = {
+    "8-bit png": lambda p, x: cv2.imwrite(str(p.with_suffix(".png")), np.round(x * 255).astype(np.uint8))
+    and p.with_suffix(".png"),
+    "12-bit in 16-bit png": lambda p, x: _png16(p.with_suffix(".png"), np.round(x * 4095)),
+    "16-bit tif": lambda p, x: _geotiff(p.with_suffix(".tif"), np.round(x * 65535).astype(np.uint16)),
+    "float32 tif, offset and scale": lambda p, x: _geotiff(p.with_suffix(".tif"),
+                                                           (1234.5 + 37.25 * x).astype(np.float32)),
+}
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return ops.synthesize_pair(SHAPE, motion="inplane", changes=6, noise=0.002, seed=31, interpolation="cubic")
+
+
+def test_every_bit_depth_and_unit_gives_the_same_changes(tmp_path, pair):
+    masks = {}
+    for name, write in FORMATS.items():
+        d = tmp_path / name.replace(" ", "_").replace(",", "")
+        d.mkdir()
+        ref = write(d / "reference", np.clip(pair.reference, 0, 1))
+        dist = write(d / "distorted", np.clip(pair.distorted, 0, 1))
+        detect(ref, dist, d / "o.zarr", config=DetectConfig(tile=128))
+        arrays, attrs = read_store(d / "o.zarr")
+        masks[name] = arrays["change_mask"] > 0
+        assert attrs["intensity"]["capture_clip"] == [None, None], name  # nothing sits at a saturation value
+    truth = pair.change_mask
+    for a in masks:
+        f = ops.confusion(masks[a], truth).f_measure
+        assert f >= 0.9, (a, f)
+        for b in masks:
+            iou = (masks[a] & masks[b]).sum() / (masks[a] | masks[b]).sum()
+            assert iou >= 0.98, (a, b, iou)
+
+
+def test_clipped_highlights_are_no_data_not_change(tmp_path):
+    """A capture 35 % brighter than its reference whose sensor saturates: a
+    fifth of its pixels at 255 (bright fields; the new objects are dark on
+    them).  They carry no evidence: no-data in the score, never change, their
+    share in the summary."""
+    scene = (0.25 + 0.7 * ops.aerial_scene((400, 400), seed=33)).astype(np.float32)
+    bright = ops.synthesize_pair(SHAPE, motion="inplane", changes=6, noise=0.002, seed=32, gain=1.35,
+                                 interpolation="cubic", scene=scene)
+    saturation = np.percentile(bright.distorted, 80)  # radiance at which the capture's sensor saturates
+    assert (bright.distorted[bright.change_mask] < saturation).mean() > 0.95
+    pair_dir = tmp_path / "pair"
+    write_pair(pair_dir, bright, fmt="npy")  # the truth
+    ref = pair_dir / "reference.png"
+    dist = pair_dir / "distorted.png"
+    cv2.imwrite(str(ref), np.round(np.clip(bright.reference / saturation, 0, 1) * 255).astype(np.uint8))
+    cv2.imwrite(str(dist), np.round(np.clip(bright.distorted / saturation, 0, 1) * 255).astype(np.uint8))
+    result = detect(ref, dist, tmp_path / "o.zarr", config=DetectConfig(tile=128))
+    assert 0.19 <= result.clipped_capture <= 0.21
+    arrays, _ = read_store(tmp_path / "o.zarr")
+    clipped = cv2.imread(str(dist), cv2.IMREAD_UNCHANGED) == 255
+    assert np.isnan(arrays["change_score"][clipped]).all() and not arrays["change_mask"][clipped].any()
+    scores = evaluate(tmp_path / "o.zarr", pair_dir)
+    outside = ~bright.change_mask & np.isfinite(arrays["registered"])
+    false_pwc = 100.0 * (arrays["change_mask"][outside] > 0).mean()
+    assert scores.changes.f_measure >= 0.93 and false_pwc <= 0.3, (scores.changes.f_measure, false_pwc)
+
+
+def test_scale_and_clip_levels():
+    from rsmb.tiles import WindowStats
+
+    def stats(values):
+        values = np.asarray(values, np.float32)
+        return WindowStats(values.size, float(values.min()), float(values.max()), int((values == values.min()).sum()),
+                           int((values == values.max()).sum()), values)
+
+    rng = np.random.default_rng(0)
+    scene = rng.uniform(0.1, 0.9, 10000).astype(np.float32)
+    eight = np.round(scene * 255) / 255
+    twelve = (np.round(scene * 4095) / 65535).astype(np.float32)  # a 12-bit sensor in 16 bits, as ingested
+    for a, b in [(eight, eight), (twelve, twelve)]:
+        scale = ops.intensity_scale(stats(a), stats(b))
+        assert scale.capture_clip == (None, None)
+        np.testing.assert_allclose(scale.apply(a, "capture") / scale.apply(a, "capture").max(),
+                                   scene / scene.max(), atol=0.01)
+    saturated = np.minimum(eight * 1.35, 1.0)
+    scale = ops.intensity_scale(stats(eight), stats(saturated))
+    assert scale.capture_clip[1] == 1.0 and scale.reference_clip == (None, None)
+    assert np.isnan(scale.apply(saturated, "capture")[saturated == 1.0]).all()
+    assert scale.capture_clipped == pytest.approx((saturated == 1.0).mean())
+    twelve_saturated = np.minimum(twelve * 1.35, np.float32(4095 / 65535))
+    assert ops.intensity_scale(stats(twelve), stats(twelve_saturated)).capture_clip[1] is not None
+    radiance = 250.0 + 3000.0 * scene  # float data in other units: no saturation value
+    assert ops.intensity_scale(stats(radiance), stats(radiance)).capture_clip == (None, None)
+    with pytest.raises(ops.InputError, match="clipped"):
+        ops.intensity_scale(stats(eight), stats(np.r_[np.zeros(50), np.ones(50)]))
