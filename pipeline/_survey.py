@@ -252,9 +252,8 @@ def _dry_run(found, out, references, reference_shas, parameters):
 
 
 def _night(ledger, found, out, references, reference_shas, parameters, night, config, run):
-    """Decide every capture, run those to run (``parallel`` at once on one
-    runner), record each in the ledger as it ends.  Returns CaptureResults in
-    the order found."""
+    """Decide every capture, run those to run (:func:`_run_all`), record each
+    in the ledger as it ends.  Returns CaptureResults in the order found."""
     results, todo = {}, []
     collisions = _collisions(found)
     for capture, name in found:
@@ -277,7 +276,15 @@ def _night(ledger, found, out, references, reference_shas, parameters, night, co
             continue
         log.info("survey: %s: %s", name, decision.reason)
         todo.append((capture, name, ledger.start(str(capture), key, night=night), decision.reason))
-    total = len(todo)
+    if todo:  # a night with nothing to run opens no scheduler (no cluster jobs, no connection)
+        results.update(_run_all(ledger, todo, out, references, config, run))
+    return [results[capture] for capture, _ in found]
+
+
+def _run_all(ledger, todo, out, references, config, run):
+    """Run the captures of ``todo`` (``parallel`` at once on one runner) and
+    record each in the ledger as it ends: capture -> CaptureResult."""
+    results, total = {}, len(todo)
     with open_runner(run["scheduler"], workers=run["workers"], shared=True, progress=False,
                      worker_timeout=run["worker_timeout"]) as runner, \
             ThreadPoolExecutor(run["parallel"] or (os.cpu_count() or 1) + 1) as driver:
@@ -298,7 +305,7 @@ def _night(ledger, found, out, references, reference_shas, parameters, night, co
             results[capture] = result
             log.info("survey [%d/%d] %s: done in %.1f s, %d change(s)", count, total, name, result.seconds,
                      result.changes)
-    return [results[capture] for capture, _ in found]
+    return results
 
 
 def _fail(ledger, run_id, capture, exc, seconds):
