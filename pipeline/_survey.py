@@ -28,7 +28,7 @@ from pathlib import Path
 
 from rsmb import ops
 from rsmb import tiles
-from rsmb.ops import InputError, RSMBError
+from rsmb.ops import InputError, ParameterError, RSMBError
 from rsmb.ops._errors import one_line
 
 from ._detect import VERSION, DetectConfig, detect
@@ -36,7 +36,7 @@ from ._ledger import LEDGER_NAME, Ledger, RunKey
 from ._outputs import write_products
 from ._scheduler import check_scheduler, open_runner
 
-__all__ = ["SurveyResult", "CaptureResult", "survey", "find_captures"]
+__all__ = ["SurveyResult", "CaptureResult", "survey", "find_captures", "check_output"]
 
 log = logging.getLogger("rsmb")
 
@@ -142,21 +142,35 @@ def _collisions(found):
     return out
 
 
-def _check_invocation(references, out_dir, scheduler):
-    """Bad invocations (exit 2) before anything runs: references that are
-    missing, unreadable or not georeferenced, an output folder that cannot be
-    written, a bad scheduler."""
+def _check_invocation(references, captures, out_dir, scheduler):
+    """Bad invocations (exit 2) before anything runs or is written: no glob,
+    references that are missing, unreadable or not georeferenced, an output
+    folder that cannot be written or that holds other things than a survey (a
+    folder is a survey's when it has a ledger), a bad scheduler."""
+    if not os.fspath(captures).strip():
+        raise ParameterError(f"captures: expected a glob pattern of the night's captures, got {captures!r}")
     if not references:
         raise InputError("REFERENCE: expected at least one georeferenced reference file")
     for path in references:
         shape, geo = tiles.probe_header(path)
         if not tiles.is_georeferenced(geo):
             raise InputError(f"{path}: the reference is not georeferenced (a survey pairs captures by footprint)")
+    check_output(out_dir)
+    check_scheduler(scheduler)
+
+
+def check_output(out_dir):
+    """Raise :class:`InputError` unless ``out_dir`` can be a survey's folder:
+    new, empty, or an earlier survey's (it holds ``ledger.sqlite``), in a
+    place that can be written.  A folder of other files is refused: a survey
+    never writes its captures' folders among someone else's files."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: -o must be a directory, this is a file")
+    if out.is_dir() and not (out / LEDGER_NAME).exists() and any(out.iterdir()):
+        raise InputError(f"{out}: -o is a folder of other files, not a survey's (no {LEDGER_NAME}); give a new or "
+                         f"empty folder, or the folder of earlier nights")
     tiles.check_writable(out / LEDGER_NAME)
-    check_scheduler(scheduler)
 
 
 def _parameters(config):
@@ -176,7 +190,8 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         A glob pattern (``**`` recurses).
     out_dir : str or path-like
         The survey's folder: one folder per capture, ``ledger.sqlite``,
-        ``nights/<UTC time>.json`` and ``index.html``.
+        ``nights/<UTC time>.json`` and ``index.html``.  New, empty, or the
+        folder of earlier nights (:func:`check_output`).
     config : DetectConfig, optional
         Its ``tile`` defaults to :data:`SURVEY_TILE`.
     scheduler, workers, worker_timeout
@@ -205,7 +220,7 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         config = dataclasses.replace(config, tile=SURVEY_TILE)
     references = [os.path.abspath(r) for r in references]
     out = Path(out_dir).absolute()
-    _check_invocation(references, out, scheduler)
+    _check_invocation(references, captures, out, scheduler)
     found = find_captures(captures, out)
     night = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H-%M-%SZ")
     log.info("survey: %d capture(s) found by %s, %d reference file(s)", len(found), captures, len(references))

@@ -352,11 +352,19 @@ def report(store, out_dir, max_pixels, overwrite):
     click.echo(f"wrote {index}")
 
 
+def _check_captures(ctx, param, value):
+    if value is not None and not value.strip():
+        raise click.BadParameter(f"expected a glob of the night's captures, got {value!r}")
+    return value
+
+
 @cli.command()
 @click.argument("references", nargs=-1, required=True, type=click.Path())
-@click.option("--captures", required=True, help="Glob of the night's captures ('**' recurses); quote it.")
+@click.option("--captures", required=True, callback=_check_captures,
+              help="Glob of the night's captures ('**' recurses); quote it.")
 @click.option("-o", "--output", "out_dir", required=True, type=click.Path(),
-              help="The survey's folder: one folder per capture, ledger.sqlite, nights/, index.html.")
+              help="The survey's folder: one folder per capture, ledger.sqlite, nights/, index.html. New, empty, "
+                   "or the folder of earlier nights.")
 @registration_options
 @tile_option("Core tile side, pixels (at least 32) [default: 1024: captures run side by side, each in few tiles].")
 @click.option("--overlap", type=click.IntRange(min=0), default=None,
