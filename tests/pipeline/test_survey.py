@@ -24,20 +24,27 @@ from rsmb.pipeline.cli import main
 from .conftest import read_store
 
 GOOD = [(100, 100), (300, 420), (420, 150)]
+LARGE_REFERENCE_W = 704
 
 
 def _scene():
     return (0.05 + 0.7 * ops.aerial_scene((768, 768), seed=5)).astype(np.float32)
 
 
-def _night(root, scene, *, bad=True):
+def _night(root, scene, *, bad=True, large=False):
     """A reference mosaic of two files and a night folder: three good captures
-    in flight1/, and with ``bad`` four bad ones in flight2/."""
-    references = write_reference(root / "reference", scene, split=2)
+    in flight1/, and with ``bad`` four bad ones in flight2/.  With ``large``,
+    the reference stops 64 px short of the scene's right edge and flight1/ has
+    a fourth capture, cap3, of 544 x 544 px (more than one 512-px COG block:
+    its COGs have overviews) that overhangs the reference by about 40 px (no
+    data there)."""
+    references = write_reference(root / "reference", scene[:, :LARGE_REFERENCE_W] if large else scene, split=2)
     night = root / "incoming"
     for k, origin in enumerate(GOOD):
         write_capture(night / "flight1" / f"cap{k}.tif", scene, CaptureSpec(origin, (256, 256), seed=10 + k,
                                                                             changes=3))
+    if large:
+        write_capture(night / "flight1" / "cap3.tif", scene, CaptureSpec((112, 200), (544, 544), seed=13, changes=5))
     if bad:
         write_capture(night / "flight2" / "elsewhere.tif", scene, CaptureSpec((100, 100), (256, 256), seed=20),
                       offset_m=(9000.0, 0.0))
@@ -68,7 +75,7 @@ class FirstNight(NamedTuple):
 @pytest.fixture(scope="module")
 def first_night(tmp_path_factory):
     root = tmp_path_factory.mktemp("survey")
-    references, night = _night(root, _scene())
+    references, night = _night(root, _scene(), large=True)
     out = root / "out"
     args = ["-q", "survey", *map(str, references), "--captures", str(night / "**" / "*.tif"), "-o", str(out),
             "--json"]
@@ -87,8 +94,8 @@ def test_bad_captures_fail_and_the_rest_finish(first_night, capsys):
     assert first_night.code == 3
     summary = _summary(out)
     status = {os.path.basename(c["capture"]): c for c in summary["captures"]}
-    assert summary["done"] == 3 and summary["failed"] == 4 and summary["skipped"] == 0
-    for name in ("cap0.tif", "cap1.tif", "cap2.tif"):
+    assert summary["done"] == 4 and summary["failed"] == 4 and summary["skipped"] == 0
+    for name in ("cap0.tif", "cap1.tif", "cap2.tif", "cap3.tif"):
         c = status[name]
         assert c["status"] == "done" and c["changes"] >= 1 and c["changed_m2"] > 0
         assert set(c) == {"capture", "status", "reason", "reference", "output", "vectors", "changes", "changed_m2",
@@ -127,11 +134,47 @@ def test_each_capture_folder_holds_its_products(first_night):
     assert attrs["summary"]["output"] == str(folder / "changes.zarr")
 
 
+def test_the_products_are_the_stores_kept_components(first_night):
+    """Every done capture's GIS products against its own store: each COG holds
+    the store's array with its no-data (255, NaN) exactly where the
+    registration is unknown, and has overviews (nearest for the masks, so
+    still 0, 1 or no-data) when larger than one 512-px block; changes.gpkg
+    has one polygon per kept component (8-connected components of the stored
+    mask), with its pixel count and area_m2 = pixels x the pixel's area."""
+    import pyogrio
+    import rasterio
+    from scipy import ndimage
+
+    out, night = first_night.out, first_night.night
+    for name in ("cap0", "cap1", "cap2", "cap3"):
+        folder = out / "flight1" / name
+        arrays, attrs = read_store(folder / "changes.zarr")
+        unknown = ~np.isfinite(arrays["registered"])
+        assert unknown.any() == (name == "cap3")  # cap3 overhangs the reference
+        for product, nodata in (("change_mask", 255), ("change_mask_reference", 255), ("change_score", np.nan)):
+            with rasterio.open(folder / f"{product}.tif") as ds:
+                assert ds.nodata == nodata or (np.isnan(nodata) and np.isnan(ds.nodata)), (name, product)
+                expected = np.where(unknown, nodata, arrays[product]).astype(ds.dtypes[0])
+                np.testing.assert_array_equal(ds.read(1), expected, err_msg=f"{name} {product}")
+                assert ds.overviews(1) == ([2] if max(ds.shape) > 512 else []), (name, product)
+                if ds.overviews(1) and product != "change_score":
+                    overview = ds.read(1, out_shape=(ds.height // 2, ds.width // 2))
+                    assert set(np.unique(overview)) == {0, 1, 255}, (name, product)
+        with rasterio.open(night / "flight1" / f"{name}.tif") as src:
+            a, b, _, d, e, _ = tuple(src.transform)[:6]
+        labels, count = ndimage.label(arrays["change_mask"] > 0, structure=np.ones((3, 3)))
+        _, _, geometry, fields = pyogrio.raw.read(folder / "changes.gpkg", layer="changes")
+        pixels, area_m2 = fields[0], fields[1]
+        assert len(geometry) == count == attrs["summary"]["components"] >= 1, name
+        assert sorted(pixels) == sorted(np.bincount(labels.ravel())[1:]), name
+        np.testing.assert_allclose(area_m2, pixels * abs(a * e - b * d), rtol=1e-12, err_msg=name)
+
+
 def test_the_index_lists_every_capture_with_its_thumbnail(first_night):
     page = (first_night.out / "index.html").read_text()
-    for name in ("cap0", "cap1", "cap2", "elsewhere", "nogeo", "flat", "truncated"):
+    for name in ("cap0", "cap1", "cap2", "cap3", "elsewhere", "nogeo", "flat", "truncated"):
         assert f"{name}.tif" in page
-    assert page.count("<img src='flight1/cap") == 3 and "http" not in page
+    assert page.count("<img src='flight1/cap") == 4 and "http" not in page
 
 
 def test_a_rerun_redoes_nothing(first_night):
@@ -149,7 +192,7 @@ def test_a_rerun_redoes_nothing(first_night):
     assert main(first_night.args) == 3  # the bad ones are retried and fail again
     seconds = time.perf_counter() - start
     summary = _summary(out)
-    assert summary["skipped"] == 3 and summary["done"] == 0 and summary["failed"] == 4
+    assert summary["skipped"] == 4 and summary["done"] == 0 and summary["failed"] == 4
     assert all(c["output"] and c["changes"] is not None for c in summary["captures"] if c["status"] == "skipped")
     assert stamps == {p: p.stat().st_mtime_ns for p in (out / "flight1").rglob("*") if p.is_file()}
     assert seconds <= 0.2 * first_night.seconds, (seconds, first_night.seconds)
