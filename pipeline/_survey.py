@@ -241,7 +241,7 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         shutil.rmtree(out / PARTIAL, ignore_errors=True)
         from ._survey_html import write_index
 
-        index = write_index(out, ledger.captures())
+        index = write_index(out, ledger.captures(), prefix=_fixed_prefix(captures).absolute())
     return SurveyResult(result.captures, result.done, result.skipped, result.failed, night, str(summary), str(index))
 
 

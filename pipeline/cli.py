@@ -394,7 +394,8 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes
         click.echo(json.dumps(result.as_dict(), indent=2))
     else:
         for c in result.captures:
-            detail = f" ({c.changes} changes)" if c.status == "done" else (f": {c.reason}" if c.reason else "")
+            reason = c.reason.removeprefix(f"{c.capture}: ")  # an error names its file: the line does already
+            detail = f" ({c.changes} changes)" if c.status == "done" else (f": {reason}" if reason else "")
             click.echo(f"{c.status:10s} {c.capture}{detail}")
         click.echo(f"{result.done} done, {result.skipped} skipped, {result.failed} failed"
                    + (f"; {result.index}" if result.index else ""))
