@@ -159,17 +159,18 @@ def _check_invocation(references, captures, out_dir, scheduler):
     check_scheduler(scheduler)
 
 
-def check_output(out_dir):
+def check_output(out_dir, *, option="-o"):
     """Raise :class:`InputError` unless ``out_dir`` can be a survey's folder:
     new, empty, or an earlier survey's (it holds ``ledger.sqlite``), in a
     place that can be written.  A folder of other files is refused: a survey
-    never writes its captures' folders among someone else's files."""
+    never writes its captures' folders among someone else's files.  The
+    message calls the folder ``option``."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
-        raise InputError(f"{out}: -o must be a directory, this is a file")
+        raise InputError(f"{out}: {option} must be a directory, this is a file")
     if out.is_dir() and not (out / LEDGER_NAME).exists() and any(out.iterdir()):
-        raise InputError(f"{out}: -o is a folder of other files, not a survey's (no {LEDGER_NAME}); give a new or "
-                         f"empty folder, or the folder of earlier nights")
+        raise InputError(f"{out}: {option} is a folder of other files, not a survey's (no {LEDGER_NAME}); give a "
+                         f"new or empty folder, or the folder of earlier nights")
     tiles.check_writable(out / LEDGER_NAME)
 
 

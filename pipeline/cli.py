@@ -409,9 +409,10 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes
 @click.option("--check", is_flag=True, help="Validate the workflow and its inputs, list the steps, run nothing.")
 @click.pass_context
 def run_command(ctx, workflow, scheduler, check):
-    """Run a nightly WORKFLOW file (YAML): synth, detect, evaluate and report steps.
+    """Run a nightly WORKFLOW file (YAML): synth, detect, evaluate, report and survey steps.
 
-    Exit code 3 when a step failed (the summary says which and why)."""
+    Exit code 3 when a step failed, a survey step included when some of its
+    captures failed (the summary says which and why)."""
     from ._workflow import check_inputs, load_workflow, run_workflow
 
     if check:
