@@ -174,7 +174,14 @@ def check_output(out_dir, *, option="-o"):
     tiles.check_writable(out / LEDGER_NAME)
 
 
-def _parameters(config):
+def _parameters(config, shape=None):
+    """The parameters of a capture's ledger key: ``config`` as detect runs it
+    on a capture of ``shape`` ('auto' steps and half-widths resolved for its
+    camera), so that equal runs key alike however they were asked for
+    (:func:`survey`'s default config, the command's 'auto')."""
+    if shape is not None:
+        camera = ops.Camera.for_shape(shape, focal=config.focal)
+        config = dataclasses.replace(config, registration=config.registration.resolved(camera))
     return tiles.jsonable({"config": config, "kernels": ops.KERNEL_VERSION})
 
 
@@ -226,13 +233,12 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
     night = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H-%M-%SZ")
     log.info("survey: %d capture(s) found by %s, %d reference file(s)", len(found), captures, len(references))
     reference_shas = [tiles.probe_image(r).sha256 for r in references]  # once per night
-    parameters = _parameters(config)
     if dry_run:
-        return _dry_run(found, out, references, reference_shas, parameters)
+        return _dry_run(found, out, references, reference_shas, config)
     out.mkdir(parents=True, exist_ok=True)
     shutil.rmtree(out / PARTIAL, ignore_errors=True)  # folders a killed night left half-built
     with Ledger(out / LEDGER_NAME) as ledger:
-        results = _night(ledger, found, out, references, reference_shas, parameters, night, config,
+        results = _night(ledger, found, out, references, reference_shas, night, config,
                          dict(scheduler=scheduler, workers=workers, parallel=parallel,
                               worker_timeout=worker_timeout, report=report))
         result = SurveyResult(results, *(sum(r.status == s for r in results) for s in ("done", "skipped", "failed")),
@@ -246,17 +252,18 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
     return SurveyResult(result.captures, result.done, result.skipped, result.failed, night, str(summary), str(index))
 
 
-def _key(capture, references, reference_shas, parameters):
-    return RunKey.build(tiles.probe_image(capture).sha256, reference_shas, references, parameters, VERSION)
+def _key(capture, references, reference_shas, config):
+    info = tiles.probe_image(capture)
+    return RunKey.build(info.sha256, reference_shas, references, _parameters(config, info.shape), VERSION)
 
 
-def _dry_run(found, out, references, reference_shas, parameters):
+def _dry_run(found, out, references, reference_shas, config):
     """What would run, and why: read-only (the ledger, if there is one)."""
     ledger = Ledger(out / LEDGER_NAME, readonly=True) if (out / LEDGER_NAME).exists() else None
     results = []
     for capture, name in found:
         try:
-            key = _key(capture, references, reference_shas, parameters)
+            key = _key(capture, references, reference_shas, config)
             decision = ledger.decide(str(capture), key) if ledger else None
             action, reason = (decision.action, decision.reason) if decision else ("run", "new capture")
             results.append(CaptureResult(str(capture), f"would {action}", reason, output=str(out / name)))
@@ -267,16 +274,16 @@ def _dry_run(found, out, references, reference_shas, parameters):
     return SurveyResult(results, 0, sum(r.status == "would skip" for r in results), 0)
 
 
-def _night(ledger, found, out, references, reference_shas, parameters, night, config, run):
+def _night(ledger, found, out, references, reference_shas, night, config, run):
     """Decide every capture, run those to run (:func:`_run_all`), record each
     in the ledger as it ends.  Returns CaptureResults in the order found."""
     results, todo = {}, []
     collisions = _collisions(found)
     for capture, name in found:
         try:
-            key = _key(capture, references, reference_shas, parameters)
+            key = _key(capture, references, reference_shas, config)
         except RSMBError as exc:  # unreadable: the ledger still hears of it
-            key = RunKey.build("unreadable", reference_shas, references, parameters, VERSION)
+            key = RunKey.build("unreadable", reference_shas, references, _parameters(config), VERSION)
             results[capture] = _fail(ledger, ledger.start(str(capture), key, night=night), capture, exc, 0.0)
             continue
         if capture in collisions:
