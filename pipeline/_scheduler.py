@@ -224,8 +224,14 @@ class _DaskProgress(dask.callbacks.Callback):
 
 def check_scheduler(scheduler):
     """Raise :class:`ops.ParameterError` unless ``scheduler`` names a local
-    scheduler, a ``tcp://host:port`` address or an existing scheduler file."""
-    if scheduler in SCHEDULERS or scheduler in JOBQUEUE:
+    scheduler, a ``tcp://host:port`` address, an existing scheduler file, or
+    ``slurm`` / ``pbs`` with dask-jobqueue installed and the ``cores`` and
+    ``memory`` of a job in dask's jobqueue configuration (checked before any
+    work, so a night never starts only to fail when its cluster is made)."""
+    if scheduler in SCHEDULERS:
+        return
+    if scheduler in JOBQUEUE:
+        _check_jobqueue(scheduler)
         return
     if isinstance(scheduler, str) and scheduler.startswith("tcp://"):
         host, _, port = scheduler[len("tcp://"):].rpartition(":")
@@ -239,6 +245,21 @@ def check_scheduler(scheduler):
 
 
 JOBQUEUE = ("slurm", "pbs")
+
+
+def _check_jobqueue(kind):
+    """dask-jobqueue importable, and what every job of ``kind`` needs in dask's
+    configuration (``jobqueue.<kind>.cores`` and ``.memory``, which it has no
+    default for)."""
+    try:
+        import dask_jobqueue  # noqa: F401 - importing it loads its defaults into dask's configuration
+    except ImportError:
+        raise ParameterError(f"scheduler: {kind} needs dask-jobqueue: pip install 'rsmb[cluster]'") from None
+    missing = [f"jobqueue.{kind}.{key}" for key in ("cores", "memory")
+               if dask.config.get(f"jobqueue.{kind}.{key}", None) is None]
+    if missing:
+        raise ParameterError(f"scheduler: {kind}: dask's jobqueue configuration has no {' and no '.join(missing)}; "
+                             f"see the README's section on SLURM")
 
 
 @contextlib.contextmanager

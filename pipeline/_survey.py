@@ -28,7 +28,7 @@ from pathlib import Path
 
 from rsmb import ops
 from rsmb import tiles
-from rsmb.ops import InputError, RSMBError
+from rsmb.ops import InputError, ParameterError, RSMBError
 from rsmb.ops._errors import one_line
 
 from ._detect import VERSION, DetectConfig, detect
@@ -36,7 +36,7 @@ from ._ledger import LEDGER_NAME, Ledger, RunKey
 from ._outputs import write_products
 from ._scheduler import check_scheduler, open_runner
 
-__all__ = ["SurveyResult", "CaptureResult", "survey", "find_captures"]
+__all__ = ["SurveyResult", "CaptureResult", "survey", "find_captures", "check_output"]
 
 log = logging.getLogger("rsmb")
 
@@ -142,24 +142,46 @@ def _collisions(found):
     return out
 
 
-def _check_invocation(references, out_dir, scheduler):
-    """Bad invocations (exit 2) before anything runs: references that are
-    missing, unreadable or not georeferenced, an output folder that cannot be
-    written, a bad scheduler."""
+def _check_invocation(references, captures, out_dir, scheduler):
+    """Bad invocations (exit 2) before anything runs or is written: no glob,
+    references that are missing, unreadable or not georeferenced, an output
+    folder that cannot be written or that holds other things than a survey (a
+    folder is a survey's when it has a ledger), a bad scheduler."""
+    if not os.fspath(captures).strip():
+        raise ParameterError(f"captures: expected a glob pattern of the night's captures, got {captures!r}")
     if not references:
         raise InputError("REFERENCE: expected at least one georeferenced reference file")
     for path in references:
         shape, geo = tiles.probe_header(path)
         if not tiles.is_georeferenced(geo):
             raise InputError(f"{path}: the reference is not georeferenced (a survey pairs captures by footprint)")
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"{out}: -o must be a directory, this is a file")
-    tiles.check_writable(out / LEDGER_NAME)
+    check_output(out_dir)
     check_scheduler(scheduler)
 
 
-def _parameters(config):
+def check_output(out_dir, *, option="-o"):
+    """Raise :class:`InputError` unless ``out_dir`` can be a survey's folder:
+    new, empty, or an earlier survey's (it holds ``ledger.sqlite``), in a
+    place that can be written.  A folder of other files is refused: a survey
+    never writes its captures' folders among someone else's files.  The
+    message calls the folder ``option``."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: {option} must be a directory, this is a file")
+    if out.is_dir() and not (out / LEDGER_NAME).exists() and any(out.iterdir()):
+        raise InputError(f"{out}: {option} is a folder of other files, not a survey's (no {LEDGER_NAME}); give a "
+                         f"new or empty folder, or the folder of earlier nights")
+    tiles.check_writable(out / LEDGER_NAME)
+
+
+def _parameters(config, shape=None):
+    """The parameters of a capture's ledger key: ``config`` as detect runs it
+    on a capture of ``shape`` ('auto' steps and half-widths resolved for its
+    camera), so that equal runs key alike however they were asked for
+    (:func:`survey`'s default config, the command's 'auto')."""
+    if shape is not None:
+        camera = ops.Camera.for_shape(shape, focal=config.focal)
+        config = dataclasses.replace(config, registration=config.registration.resolved(camera))
     return tiles.jsonable({"config": config, "kernels": ops.KERNEL_VERSION})
 
 
@@ -176,7 +198,8 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         A glob pattern (``**`` recurses).
     out_dir : str or path-like
         The survey's folder: one folder per capture, ``ledger.sqlite``,
-        ``nights/<UTC time>.json`` and ``index.html``.
+        ``nights/<UTC time>.json`` and ``index.html``.  New, empty, or the
+        folder of earlier nights (:func:`check_output`).
     config : DetectConfig, optional
         Its ``tile`` defaults to :data:`SURVEY_TILE`.
     scheduler, workers, worker_timeout
@@ -205,18 +228,17 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         config = dataclasses.replace(config, tile=SURVEY_TILE)
     references = [os.path.abspath(r) for r in references]
     out = Path(out_dir).absolute()
-    _check_invocation(references, out, scheduler)
+    _check_invocation(references, captures, out, scheduler)
     found = find_captures(captures, out)
     night = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H-%M-%SZ")
     log.info("survey: %d capture(s) found by %s, %d reference file(s)", len(found), captures, len(references))
     reference_shas = [tiles.probe_image(r).sha256 for r in references]  # once per night
-    parameters = _parameters(config)
     if dry_run:
-        return _dry_run(found, out, references, reference_shas, parameters)
+        return _dry_run(found, out, references, reference_shas, config)
     out.mkdir(parents=True, exist_ok=True)
     shutil.rmtree(out / PARTIAL, ignore_errors=True)  # folders a killed night left half-built
     with Ledger(out / LEDGER_NAME) as ledger:
-        results = _night(ledger, found, out, references, reference_shas, parameters, night, config,
+        results = _night(ledger, found, out, references, reference_shas, night, config,
                          dict(scheduler=scheduler, workers=workers, parallel=parallel,
                               worker_timeout=worker_timeout, report=report))
         result = SurveyResult(results, *(sum(r.status == s for r in results) for s in ("done", "skipped", "failed")),
@@ -226,21 +248,22 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         shutil.rmtree(out / PARTIAL, ignore_errors=True)
         from ._survey_html import write_index
 
-        index = write_index(out, ledger.captures())
+        index = write_index(out, ledger.captures(), prefix=_fixed_prefix(captures).absolute())
     return SurveyResult(result.captures, result.done, result.skipped, result.failed, night, str(summary), str(index))
 
 
-def _key(capture, references, reference_shas, parameters):
-    return RunKey.build(tiles.probe_image(capture).sha256, reference_shas, references, parameters, VERSION)
+def _key(capture, references, reference_shas, config):
+    info = tiles.probe_image(capture)
+    return RunKey.build(info.sha256, reference_shas, references, _parameters(config, info.shape), VERSION)
 
 
-def _dry_run(found, out, references, reference_shas, parameters):
+def _dry_run(found, out, references, reference_shas, config):
     """What would run, and why: read-only (the ledger, if there is one)."""
     ledger = Ledger(out / LEDGER_NAME, readonly=True) if (out / LEDGER_NAME).exists() else None
     results = []
     for capture, name in found:
         try:
-            key = _key(capture, references, reference_shas, parameters)
+            key = _key(capture, references, reference_shas, config)
             decision = ledger.decide(str(capture), key) if ledger else None
             action, reason = (decision.action, decision.reason) if decision else ("run", "new capture")
             results.append(CaptureResult(str(capture), f"would {action}", reason, output=str(out / name)))
@@ -251,17 +274,16 @@ def _dry_run(found, out, references, reference_shas, parameters):
     return SurveyResult(results, 0, sum(r.status == "would skip" for r in results), 0)
 
 
-def _night(ledger, found, out, references, reference_shas, parameters, night, config, run):
-    """Decide every capture, run those to run (``parallel`` at once on one
-    runner), record each in the ledger as it ends.  Returns CaptureResults in
-    the order found."""
+def _night(ledger, found, out, references, reference_shas, night, config, run):
+    """Decide every capture, run those to run (:func:`_run_all`), record each
+    in the ledger as it ends.  Returns CaptureResults in the order found."""
     results, todo = {}, []
     collisions = _collisions(found)
     for capture, name in found:
         try:
-            key = _key(capture, references, reference_shas, parameters)
+            key = _key(capture, references, reference_shas, config)
         except RSMBError as exc:  # unreadable: the ledger still hears of it
-            key = RunKey.build("unreadable", reference_shas, references, parameters, VERSION)
+            key = RunKey.build("unreadable", reference_shas, references, _parameters(config), VERSION)
             results[capture] = _fail(ledger, ledger.start(str(capture), key, night=night), capture, exc, 0.0)
             continue
         if capture in collisions:
@@ -277,7 +299,15 @@ def _night(ledger, found, out, references, reference_shas, parameters, night, co
             continue
         log.info("survey: %s: %s", name, decision.reason)
         todo.append((capture, name, ledger.start(str(capture), key, night=night), decision.reason))
-    total = len(todo)
+    if todo:  # a night with nothing to run opens no scheduler (no cluster jobs, no connection)
+        results.update(_run_all(ledger, todo, out, references, config, run))
+    return [results[capture] for capture, _ in found]
+
+
+def _run_all(ledger, todo, out, references, config, run):
+    """Run the captures of ``todo`` (``parallel`` at once on one runner) and
+    record each in the ledger as it ends: capture -> CaptureResult."""
+    results, total = {}, len(todo)
     with open_runner(run["scheduler"], workers=run["workers"], shared=True, progress=False,
                      worker_timeout=run["worker_timeout"]) as runner, \
             ThreadPoolExecutor(run["parallel"] or (os.cpu_count() or 1) + 1) as driver:
@@ -298,7 +328,7 @@ def _night(ledger, found, out, references, reference_shas, parameters, night, co
             results[capture] = result
             log.info("survey [%d/%d] %s: done in %.1f s, %d change(s)", count, total, name, result.seconds,
                      result.changes)
-    return [results[capture] for capture, _ in found]
+    return results
 
 
 def _fail(ledger, run_id, capture, exc, seconds):

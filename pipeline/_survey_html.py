@@ -1,9 +1,13 @@
 """The pages of a survey: ``thumbnail.png`` per capture and ``OUT_DIR/index.html``.
 
 The index lists every capture the ledger has ever seen (its latest attempt):
-status, reason, changes and their area, its thumbnail and a link to its
-report.  Links are relative and there is no script, so the page opens from
-disk without a server.
+capture, status, reason, changes and their area, its thumbnail and a link to
+its report.  Links are relative and there is no script, so the page opens from
+disk without a server.  Layout rules: the table is as wide as the window and no
+wider (fixed columns; long paths and reasons wrap anywhere), a capture under
+the night's glob prefix is shown relative to it (the name the survey's log and
+folders use; its full path in the cell's tooltip), and a reason does not
+repeat the capture's path it starts with.
 """
 
 import html
@@ -30,10 +34,14 @@ def write_thumbnail(group, path, *, side=THUMBNAIL):
     return Path(path)
 
 
-_STYLE = """body{font-family:sans-serif;margin:1.5em;color:#222}
-table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:4px 8px;vertical-align:middle}
-th{background:#eee}td.num{text-align:right}.done{color:#161}.failed{color:#b00;font-weight:bold}
-.running{color:#a60}img{display:block;max-width:256px;max-height:256px}"""
+_STYLE = """body{font-family:sans-serif;margin:1.5em;color:#222;overflow-wrap:anywhere}
+table{border-collapse:collapse;width:100%;table-layout:fixed}
+td,th{border:1px solid #ccc;padding:4px 8px;vertical-align:middle}th{background:#eee}
+td.num{text-align:right}.done{color:#161}.failed{color:#b00;font-weight:bold}.running{color:#a60}
+code{font-size:90%}img{display:block;max-width:100%;max-height:160px}"""
+#: (header, width) of the index's columns; the thumbnail column fits a 160-px thumbnail and its padding
+_COLUMNS = (("capture", "16%"), ("status", "6em"), ("reason", "auto"), ("changes", "6em"), ("changed m&sup2;", "7em"),
+            ("thumbnail", "178px"), ("report", "5em"), ("when (UTC)", "8em"))
 
 
 def _cell(value, numeric=False):
@@ -41,33 +49,56 @@ def _cell(value, numeric=False):
     return f"<td class='num'>{html.escape(text)}</td>" if numeric else f"<td>{html.escape(text)}</td>"
 
 
-def _row(out, row):
+def _shown(capture, prefix):
+    """A capture's path as the index shows it: relative to the night's glob
+    prefix when it lies under it, else whole."""
+    if prefix is not None and Path(prefix) in Path(capture).parents:
+        return Path(capture).relative_to(prefix).as_posix()
+    return capture
+
+
+def _reason(row):
+    """The reason without the capture's path it starts with (errors name their file)."""
+    return row.reason.removeprefix(f"{row.capture}: ")
+
+
+def _when(stamp):
+    """``2026-11-23T21:29:52.722Z`` -> ``2026-11-23 21:29:52``."""
+    return stamp.replace("T", " ")[:19] if stamp else None
+
+
+def _row(out, row, prefix):
     outputs = row.outputs
     folder = outputs.get("output")
-    link = lambda target: os.path.relpath(target, out).replace(os.sep, "/")  # noqa: E731
+    link = lambda target: html.escape(os.path.relpath(target, out).replace(os.sep, "/"))  # noqa: E731
     thumb = report = ""
-    if folder and Path(folder, "thumbnail.png").is_file():
-        thumb = f"<img src='{html.escape(link(Path(folder, 'thumbnail.png')))}' alt='thumbnail'>"
     if folder and Path(folder, "report", "index.html").is_file():
-        report = f"<a href='{html.escape(link(Path(folder, 'report', 'index.html')))}'>report</a>"
-    return (f"<tr><td><code>{html.escape(row.capture)}</code></td>"
-            f"<td class='{html.escape(row.status)}'>{html.escape(row.status)}</td>{_cell(row.reason)}"
+        report = f"<a href='{link(Path(folder, 'report', 'index.html'))}'>report</a>"
+    if folder and Path(folder, "thumbnail.png").is_file():
+        image = f"<img src='{link(Path(folder, 'thumbnail.png'))}' alt='thumbnail'>"
+        thumb = f"<a href='{link(Path(folder, 'thumbnail.png'))}'>{image}</a>"
+    return (f"<tr><td title='{html.escape(row.capture)}'><code>{html.escape(_shown(row.capture, prefix))}</code></td>"
+            f"<td class='{html.escape(row.status)}'>{html.escape(row.status)}</td>{_cell(_reason(row))}"
             f"{_cell(outputs.get('changes'), True)}{_cell(outputs.get('changed_m2'), True)}"
-            f"<td>{thumb}</td><td>{report}</td>{_cell(row.finished or row.started)}</tr>")
+            f"<td>{thumb}</td><td>{report}</td>{_cell(_when(row.finished or row.started))}</tr>")
 
 
-def write_index(out, rows):
+def write_index(out, rows, *, prefix=None):
     """``out/index.html``: one row per capture of ``rows`` (the ledger's
-    latest attempts), written aside and renamed.  Returns its path."""
+    latest attempts), written aside and renamed.  Captures under ``prefix``
+    (the night's glob prefix, a directory) are shown relative to it.  Returns
+    its path."""
     out = Path(out)
     counts = {s: sum(r.status == s for r in rows) for s in ("done", "failed", "running")}
-    body = "\n".join(_row(out, r) for r in rows)
+    body = "\n".join(_row(out, r, prefix) for r in rows)
+    columns = "".join(f"<col style='width:{width}'>" for _, width in _COLUMNS)
+    headers = "".join(f"<th>{name}</th>" for name, _ in _COLUMNS)
+    under = f" Captures under <code>{html.escape(str(prefix))}/</code> are named relative to it." if prefix else ""
     page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>rsmb survey: {html.escape(out.name)}"
             f"</title><style>{_STYLE}</style></head><body><h1>rsmb survey: {html.escape(str(out))}</h1>"
             f"<p>{len(rows)} captures: {counts['done']} done, {counts['failed']} failed"
-            f"{', %d interrupted' % counts['running'] if counts['running'] else ''}.</p>"
-            f"<table><tr><th>capture</th><th>status</th><th>reason</th><th>changes</th><th>changed m&sup2;</th>"
-            f"<th>thumbnail</th><th>report</th><th>when (UTC)</th></tr>\n{body}\n</table></body></html>\n")
+            f"{', %d interrupted' % counts['running'] if counts['running'] else ''}.{under}</p>"
+            f"<table><colgroup>{columns}</colgroup><tr>{headers}</tr>\n{body}\n</table></body></html>\n")
     path = out / "index.html"
     tmp = out / ".index.html.partial"
     tmp.write_text(page, encoding="utf-8")

@@ -4,7 +4,7 @@ A workflow file is validated as data (types, ranges, required keys, and the
 inputs that must exist) before any step runs::
 
     name: nightly-example
-    scheduler: threads            # or processes, synchronous, tcp://..., a scheduler file
+    scheduler: threads            # or processes, synchronous, tcp://..., a scheduler file, slurm, pbs
     overwrite: true               # replace outputs of a previous night
     keep_going: false             # after a failed step, run the remaining ones
     detect:                       # defaults for every detect step (the detect options)
@@ -16,152 +16,47 @@ inputs that must exist) before any step runs::
                  output: runs/changes.zarr, geotiff: runs/geotiff}
       - evaluate: {store: runs/changes.zarr, truth: runs/pair}
       - report: {store: runs/changes.zarr}
+      - survey: {references: [mosaic/a.tif, mosaic/b.tif], captures: "incoming/**/*.tif",
+                 output: runs/survey, parallel: 3}
 
-Relative paths are relative to the directory of the workflow file.  An input
-must exist when the workflow starts unless an earlier step writes it.  Each
-step calls the same library function as the command of the same name; a
+Relative paths, and the captures glob, are relative to the directory of the
+workflow file.  An input must exist when the workflow starts unless an earlier
+step writes it (a path inside an earlier step's output counts as written).
+Each step calls the same library function as the command of the same name; a
 detect step with ``resume: true`` whose output is finished is complete
 already.  The summary of every step (status, seconds, result or reason) is
 written to ``summary`` (default ``<name>.summary.json`` next to the first
 detect output, else next to the workflow file), also when a step fails.
+
+A survey step takes the options of ``rsmb survey`` (``references``,
+``captures``, ``output``, ``parallel``, ``workers``, ``worker_timeout``,
+``report``) and the detect options by the same names; the workflow's
+``detect`` defaults are for detect steps and do not apply to it.  A survey is
+resumable by nature: its ledger skips the captures done with the same inputs
+and parameters, so running the workflow again redoes only what is new, failed
+or changed; it takes neither ``resume`` nor the workflow's ``overwrite`` (a
+capture's folder is replaced only when the capture is redone).  Its output
+folder must be new, empty or an earlier survey's.  A night with failed
+captures is a failed step (the others finished): its reason counts them, its
+result names them, and the workflow exits 3.
 """
 
 import json
 import logging
+import os
 import time
 from pathlib import Path
-from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import ValidationError
 
 from rsmb import ops
 from rsmb.ops import InputError, RSMBError
 
+from ._workflow_steps import _INPUTS, _NAMED, STEPS, DetectOptions, SurveyStep, Workflow, _File, _MethodOptions
+
 __all__ = ["Workflow", "load_workflow", "check_inputs", "run_workflow"]
 
 log = logging.getLogger("rsmb")
-
-
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-_Axis = Literal[ops.POSE_AXES]
-_Auto = Literal["auto"]
-
-
-def _per_axis(value):
-    """A number, 'auto', a list of them or a comma-separated string -> a list."""
-    if isinstance(value, str):
-        return [v.strip() for v in value.split(",")]
-    return value if isinstance(value, list) else [value]
-
-
-class DetectOptions(_Model):
-    """The options of ``rsmb detect`` (same names, underscores for dashes)."""
-
-    axes: list[_Axis] = ["tx", "ty", "rz"]
-    half_width: list[Annotated[float, Field(ge=0)] | _Auto] = ["auto"]
-    step: list[Annotated[float, Field(gt=0)] | _Auto] = ["auto"]
-    search: list[Annotated[float, Field(ge=0)]] | None = None
-    slow_axes: list[Literal["rx", "ry", "none"]] = ["rx", "ry"]
-    shutter: Literal["rolling", "global"] = "rolling"
-    solver: Literal["fast", "exact"] = "fast"
-    lambda_w: Annotated[float, Field(ge=0)] = 1e-3
-    lambda_chi: Annotated[float, Field(gt=0)] = 0.02
-    threshold: Literal["noise", "kapur"] | Annotated[float, Field(gt=0)] = "noise"
-    min_area: Annotated[int, Field(ge=0)] = 20
-    focal: Annotated[float, Field(gt=0)] | None = None
-    tile_size: Annotated[int, Field(ge=32)] | None = None
-    overlap: Annotated[int, Field(ge=0)] | None = None
-    workers: Annotated[int, Field(ge=1)] | None = None
-    resume: bool = False
-
-    @field_validator("axes", "half_width", "step", "search", "slow_axes", mode="before")
-    @classmethod
-    def _split(cls, value):
-        return None if value is None else _per_axis(value)
-
-    def config(self):
-        """The :class:`DetectConfig` these options ask for."""
-        from .cli import build_config
-
-        text = lambda values: ",".join(map(str, values))  # noqa: E731
-        return build_config(text(self.axes), text(self.half_width), text(self.step),
-                            text(self.search) if self.search else None, self.shutter, self.solver, self.lambda_w,
-                            self.lambda_chi, str(self.threshold), self.min_area, self.focal, self.tile_size,
-                            self.overlap, slow_axes=text(self.slow_axes))
-
-
-class DetectStep(DetectOptions):
-    reference: Path
-    distorted: Path
-    output: Path
-    geotiff: Path | None = None
-
-
-class SynthStep(_Model):
-    out_dir: Path
-    size: Annotated[int, Field(ge=32)] | tuple[Annotated[int, Field(ge=32)], Annotated[int, Field(ge=32)]] = 512
-    motion: Literal[tuple(sorted(ops.MOTIONS))] = "inplane"
-    shutter: Literal["rolling", "global"] = "rolling"
-    exposure: Annotated[float, Field(ge=0)] | None = None
-    scale: float = 1.0
-    gain: Annotated[float, Field(gt=0)] | tuple[Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]] = 1.0
-    changes: Annotated[int, Field(ge=0)] = 8
-    noise: Annotated[float, Field(ge=0)] = 0.002
-    seed: int = 0
-    format: Literal["png", "tif", "npy"] = "png"
-
-    def writes(self):
-        return [self.out_dir, self.out_dir / f"reference.{self.format}", self.out_dir / f"distorted.{self.format}",
-                self.out_dir / "truth"]
-
-
-class EvaluateStep(_Model):
-    store: Path
-    truth: Path
-
-
-class ReportStep(_Model):
-    store: Path
-    out_dir: Path | None = None
-
-
-STEPS = {"synth": SynthStep, "detect": DetectStep, "evaluate": EvaluateStep, "report": ReportStep}
-#: per step kind, the fields that name inputs that must exist (or be written by an earlier step)
-_INPUTS = {"synth": (), "detect": ("reference", "distorted"), "evaluate": ("store", "truth"), "report": ("store",)}
-
-
-class Workflow(_Model):
-    """A validated workflow: its steps as typed models, paths absolute."""
-
-    name: str
-    path: Path
-    scheduler: str = "threads"
-    overwrite: bool = False
-    keep_going: bool = False
-    summary: Path
-    steps: list[tuple[str, Union[SynthStep, DetectStep, EvaluateStep, ReportStep]]]
-
-
-class _File(_Model):
-    name: str | None = None
-    scheduler: str = "threads"
-    overwrite: bool = False
-    keep_going: bool = False
-    summary: Path | None = None
-    detect: dict | None = None
-    steps: Annotated[list[dict], Field(min_length=1)]
-
-    @field_validator("scheduler")
-    @classmethod
-    def _scheduler(cls, value):
-        from ._scheduler import check_scheduler
-
-        if value in ("threads", "processes", "synchronous") or value.startswith("tcp://"):
-            check_scheduler(value)
-        return value  # a scheduler file is resolved against the workflow's directory later
 
 
 def _error(path, where, exc):
@@ -177,9 +72,31 @@ def _error(path, where, exc):
 
 
 def _absolute(model, base):
-    """``model`` with every relative Path field made absolute against ``base``."""
-    changes = {k: base / v for k, v in model if isinstance(v, Path) and not v.is_absolute()}
+    """``model`` with every relative Path field (alone or in a list) and a
+    survey's captures glob made absolute against ``base``."""
+    absolute = lambda v: v if v.is_absolute() else base / v  # noqa: E731
+    changes = {k: absolute(v) for k, v in model if isinstance(v, Path)}
+    changes.update({k: [absolute(p) for p in v] for k, v in model
+                     if isinstance(v, list) and v and all(isinstance(p, Path) for p in v)})
+    if isinstance(model, SurveyStep) and not os.path.isabs(model.captures):
+        changes["captures"] = os.path.join(base, model.captures)
     return model.model_copy(update=changes)
+
+
+def _check_options(model):
+    """What pydantic cannot see of the method options (a value per axis, say):
+    the config is built once here, so a bad one is refused before any step runs.
+    Returns None or the problem as ``key: message``."""
+    import click
+
+    try:
+        model.config()
+    except click.BadParameter as exc:
+        key = (exc.param_hint or "").lstrip("-").replace("-", "_")
+        return f"{key}: {exc.message}"
+    except ops.ParameterError as exc:
+        return str(exc)
+    return None
 
 
 def load_workflow(path):
@@ -227,9 +144,12 @@ def load_workflow(path):
             model = STEPS[kind].model_validate(options)
         except ValidationError as exc:
             raise _error(path, f"step {number} ({kind}): ", exc) from None
+        problem = _check_options(model) if isinstance(model, _MethodOptions) else None
+        if problem:
+            raise InputError(f"{path}: step {number} ({kind}): {problem}")
         steps.append((kind, _absolute(model, base)))
     scheduler = top.scheduler
-    if not (scheduler in ("threads", "processes", "synchronous") or scheduler.startswith("tcp://")):
+    if not (scheduler in _NAMED or scheduler.startswith("tcp://")):
         scheduler = str(base / scheduler)
     outputs = [m.output for k, m in steps if k == "detect"]
     name = top.name or path.stem
@@ -246,18 +166,42 @@ def _writes(kind, model):
         return [model.output] + ([model.geotiff] if model.geotiff else [])
     if kind == "report":
         return [model.out_dir] if model.out_dir else []
+    if kind == "survey":
+        return [model.output]
     return []
+
+
+def _check_survey(model, written):
+    """A survey step's references (those on disk: georeferenced) and output
+    folder (new, empty or a survey's), as ``rsmb survey`` checks them."""
+    from rsmb import tiles
+
+    from ._survey import check_output
+
+    for path in model.references:
+        if path not in written and not tiles.is_georeferenced(tiles.probe_header(path)[1]):
+            raise InputError(f"references: {path}: not georeferenced (a survey pairs captures by footprint)")
+    check_output(model.output, option="output")
 
 
 def check_inputs(workflow):
     """Raise :class:`InputError` for the first input that does not exist and
-    that no earlier step writes (one line naming the file, the step and the key)."""
+    that no earlier step writes, or that its step cannot use (one line naming
+    the file, the step and the key)."""
     written = set()
+    made = lambda path: path in written or any(p in written for p in path.parents)  # noqa: E731
     for number, (kind, model) in enumerate(workflow.steps, 1):
+        where = f"{workflow.path}: step {number} ({kind})"
         for key in _INPUTS[kind]:
             value = getattr(model, key)
-            if value not in written and not value.exists():
-                raise InputError(f"{workflow.path}: step {number} ({kind}): {key}: {value} does not exist")
+            for path in value if isinstance(value, list) else [value]:
+                if not made(path) and not path.exists():
+                    raise InputError(f"{where}: {key}: {path} does not exist")
+        if kind == "survey":
+            try:
+                _check_survey(model, {p for p in model.references if made(p)})
+            except InputError as exc:
+                raise InputError(f"{where}: {exc}") from None
         written.update(_writes(kind, model))
     if not (workflow.scheduler in ("threads", "processes", "synchronous") or workflow.scheduler.startswith("tcp://")):
         from ._scheduler import check_scheduler
@@ -266,6 +210,33 @@ def check_inputs(workflow):
             check_scheduler(workflow.scheduler)
         except ops.ParameterError as exc:
             raise InputError(f"{workflow.path}: {exc}") from None
+
+
+class StepFailed(RSMBError):
+    """A step that ran to its end with a failure to report (a survey whose
+    night had failed captures): the message is the reason, ``result`` the
+    step's result all the same."""
+
+    def __init__(self, message, result):
+        super().__init__(message)
+        self.result = result
+
+
+def _survey_step(model, scheduler):
+    """Run a survey step; its result holds the night's counts, where its
+    summary and index are, and the reason of every failed capture."""
+    from ._survey import survey
+
+    night = survey(model.references, model.captures, model.output, config=model.config(), scheduler=scheduler,
+                   workers=model.workers, parallel=model.parallel, worker_timeout=model.worker_timeout,
+                   report=model.report)
+    result = {"output": str(model.output), "done": night.done, "skipped": night.skipped, "failed": night.failed,
+              "summary": night.summary, "index": night.index,
+              "failed_captures": {c.capture: c.reason for c in night.captures if c.status == "failed"}}
+    if night.failed:
+        raise StepFailed(f"{night.failed} of {len(night.captures)} captures failed (the others finished); "
+                         f"see {night.summary}", result)
+    return result
 
 
 def _run_step(kind, model, workflow, scheduler):
@@ -286,6 +257,8 @@ def _run_step(kind, model, workflow, scheduler):
                       geotiff=model.geotiff).as_dict()
     if kind == "evaluate":
         return evaluate(model.store, model.truth).as_dict()
+    if kind == "survey":
+        return _survey_step(model, scheduler)
     return {"report": str(write_report(model.store, model.out_dir, overwrite=True))}
 
 
@@ -299,7 +272,8 @@ def run_workflow(path, *, scheduler=None):
     -------
     list of dict
         Per step: ``step``, ``kind``, ``status`` ("done", "failed" or "not
-        run"), ``seconds``, and ``result`` or ``reason``.
+        run"), ``seconds``, and ``result`` or ``reason`` (both for a survey
+        step with failed captures).
     """
     workflow = load_workflow(path)
     check_inputs(workflow)
@@ -321,6 +295,8 @@ def run_workflow(path, *, scheduler=None):
             except (RSMBError, OSError) as exc:
                 failed = True
                 record.update(status="failed", reason=" ".join(str(exc).split()))
+                if isinstance(exc, StepFailed):
+                    record["result"] = exc.result
                 log.error("%s: step %d (%s) failed: %s", workflow.name, number, kind, record["reason"])
             record["seconds"] = time.perf_counter() - start
     finally:

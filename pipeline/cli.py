@@ -352,11 +352,19 @@ def report(store, out_dir, max_pixels, overwrite):
     click.echo(f"wrote {index}")
 
 
+def _check_captures(ctx, param, value):
+    if value is not None and not value.strip():
+        raise click.BadParameter(f"expected a glob of the night's captures, got {value!r}")
+    return value
+
+
 @cli.command()
 @click.argument("references", nargs=-1, required=True, type=click.Path())
-@click.option("--captures", required=True, help="Glob of the night's captures ('**' recurses); quote it.")
+@click.option("--captures", required=True, callback=_check_captures,
+              help="Glob of the night's captures ('**' recurses); quote it.")
 @click.option("-o", "--output", "out_dir", required=True, type=click.Path(),
-              help="The survey's folder: one folder per capture, ledger.sqlite, nights/, index.html.")
+              help="The survey's folder: one folder per capture, ledger.sqlite, nights/, index.html. New, empty, "
+                   "or the folder of earlier nights.")
 @registration_options
 @tile_option("Core tile side, pixels (at least 32) [default: 1024: captures run side by side, each in few tiles].")
 @click.option("--overlap", type=click.IntRange(min=0), default=None,
@@ -386,7 +394,8 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes
         click.echo(json.dumps(result.as_dict(), indent=2))
     else:
         for c in result.captures:
-            detail = f" ({c.changes} changes)" if c.status == "done" else (f": {c.reason}" if c.reason else "")
+            reason = c.reason.removeprefix(f"{c.capture}: ")  # an error names its file: the line does already
+            detail = f" ({c.changes} changes)" if c.status == "done" else (f": {reason}" if reason else "")
             click.echo(f"{c.status:10s} {c.capture}{detail}")
         click.echo(f"{result.done} done, {result.skipped} skipped, {result.failed} failed"
                    + (f"; {result.index}" if result.index else ""))
@@ -400,9 +409,10 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes
 @click.option("--check", is_flag=True, help="Validate the workflow and its inputs, list the steps, run nothing.")
 @click.pass_context
 def run_command(ctx, workflow, scheduler, check):
-    """Run a nightly WORKFLOW file (YAML): synth, detect, evaluate and report steps.
+    """Run a nightly WORKFLOW file (YAML): synth, detect, evaluate, report and survey steps.
 
-    Exit code 3 when a step failed (the summary says which and why)."""
+    Exit code 3 when a step failed, a survey step included when some of its
+    captures failed (the summary says which and why)."""
     from ._workflow import check_inputs, load_workflow, run_workflow
 
     if check:

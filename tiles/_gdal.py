@@ -7,11 +7,13 @@ of ``__cause__`` / ``__context__``.  :func:`gdal_cause` finds it, so the one-lin
 :class:`InputError` names the real cause.
 
 rasterio also logs every GDAL failure at INFO ("GDAL signalled an error") on the
-loggers ``rasterio._env`` and ``rasterio._err``, and a program that logs at INFO
-(the CLI) printed those lines before the error.  Inside :func:`gdal_errors`
-those INFO records are demoted to DEBUG for the calling thread only: hidden at
-INFO, shown with ``-vv``.  Warnings and errors pass unchanged, and nothing
-changes for rasterio calls outside rsmb's reads.
+loggers ``rasterio._env`` and ``rasterio._err``, and pyogrio every layer it
+writes ("Created N records", ``pyogrio._io``); a program that logs at INFO (the
+CLI) printed those lines.  Inside :func:`quiet_gdal` (and so inside
+:func:`gdal_errors`) INFO records of those loggers are demoted to DEBUG for the
+calling thread only: hidden at INFO, shown with ``-vv``.  Warnings and errors
+pass unchanged, and nothing changes for rasterio or pyogrio calls outside rsmb's
+own reads and writes.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import threading
 
 from rsmb.ops._errors import InputError, one_line
 
-_LOGGERS = ("rasterio._env", "rasterio._err")
+_LOGGERS = ("rasterio._env", "rasterio._err", "pyogrio._io", "pyogrio._err")
 _POINTER = "See previous exception"
 _scope = threading.local()
 _install_lock = threading.Lock()
@@ -52,7 +54,7 @@ def gdal_cause(exc: BaseException) -> str:
 
 
 class _DemoteInScope(logging.Filter):
-    """INFO records become DEBUG records while the thread is inside gdal_errors."""
+    """INFO records become DEBUG records while the thread is inside quiet_gdal."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         if not getattr(_scope, "depth", 0) or record.levelno != logging.INFO:
@@ -64,8 +66,8 @@ class _DemoteInScope(logging.Filter):
 
 
 def _install_filter() -> None:
-    """Add the filter to rasterio's two GDAL loggers, once per process (it does
-    nothing outside a gdal_errors scope)."""
+    """Add the filter to the GDAL loggers of rasterio and pyogrio, once per
+    process (it does nothing outside a quiet_gdal scope)."""
     global _installed
     with _install_lock:
         if _installed:
@@ -76,9 +78,22 @@ def _install_filter() -> None:
 
 
 @contextlib.contextmanager
+def quiet_gdal():
+    """Scope of rasterio or pyogrio calls whose INFO lines are demoted to DEBUG
+    (this thread only); errors pass unchanged."""
+    _install_filter()
+    _scope.depth = getattr(_scope, "depth", 0) + 1
+    try:
+        yield
+    finally:
+        _scope.depth -= 1
+
+
+@contextlib.contextmanager
 def gdal_errors(path: str, action: str = "cannot read image"):
-    """Scope of rasterio calls on ``path``: GDAL's INFO lines demoted to DEBUG,
-    rasterio errors and OSError re-raised as one-line :class:`InputError`.
+    """Scope of rasterio calls on ``path``: GDAL's INFO lines demoted to DEBUG
+    (:func:`quiet_gdal`), rasterio errors and OSError re-raised as one-line
+    :class:`InputError`.
 
     Raises
     ------
@@ -87,11 +102,8 @@ def gdal_errors(path: str, action: str = "cannot read image"):
     """
     from rasterio.errors import RasterioError
 
-    _install_filter()
-    _scope.depth = getattr(_scope, "depth", 0) + 1
-    try:
-        yield
-    except (RasterioError, OSError) as exc:
-        raise InputError(f"{path}: {action} ({gdal_cause(exc)})") from exc
-    finally:
-        _scope.depth -= 1
+    with quiet_gdal():
+        try:
+            yield
+        except (RasterioError, OSError) as exc:
+            raise InputError(f"{path}: {action} ({gdal_cause(exc)})") from exc

@@ -30,6 +30,7 @@ import numpy as np
 from rsmb.ops import label_components
 from rsmb.ops._errors import InputError, ParameterError
 
+from ._gdal import quiet_gdal
 from ._io import GeoInfo, write_geotiff
 
 __all__ = ["ChangePolygon", "change_polygons", "write_changes_gpkg", "write_cog"]
@@ -334,7 +335,8 @@ def write_changes_gpkg(
     Geometry type MultiPolygon, one feature per component; fields ``pixels``
     (int64), ``area_m2``, ``mean_score``, ``peak_score`` (float64, NaN written as
     NULL).  Written with pyogrio from WKB, so neither geopandas nor shapely is
-    needed.
+    needed; pyogrio's INFO line about it ("Created N records") is demoted to
+    DEBUG (:func:`quiet_gdal`).
     """
     from pyogrio.raw import write
 
@@ -349,7 +351,8 @@ def write_changes_gpkg(
     ]
     with _aside(final) as tmp:
         out = Path(tmp) / final.name
-        write(str(out), geometry, field_data, list(CHANGES_FIELDS), layer=CHANGES_LAYER,
-              driver="GPKG", geometry_type="MultiPolygon", crs=crs)
+        with quiet_gdal():
+            write(str(out), geometry, field_data, list(CHANGES_FIELDS), layer=CHANGES_LAYER,
+                  driver="GPKG", geometry_type="MultiPolygon", crs=crs)
         _move_into_place(out, final, overwrite)
     return final

@@ -30,3 +30,19 @@ def test_api_names(tmp_path):
     assert rsmb.report(tmp_path / "o.zarr").name == "index.html"
     assert result.shape == [96, 96] and rsmb.__version__
     assert set(rsmb.__all__) <= set(dir(rsmb))
+
+
+def test_api_and_command_run_the_same_night(tmp_path):
+    """``rsmb.survey`` with its defaults keys a capture as ``rsmb survey`` with
+    its own: the second of the two skips what the first did."""
+    from rsmb import ops
+    from rsmb.pipeline._archive import CaptureSpec, write_capture, write_reference
+
+    scene = (0.05 + 0.7 * ops.aerial_scene((192, 192), seed=3)).astype(np.float32)
+    references = write_reference(tmp_path / "reference", scene)
+    write_capture(tmp_path / "incoming" / "cap.tif", scene, CaptureSpec((32, 32), (96, 96), seed=1, changes=1))
+    captures, out = str(tmp_path / "incoming" / "*.tif"), tmp_path / "night"
+    assert main(["-q", "survey", *map(str, references), "--captures", captures, "-o", str(out), "--no-report"]) == 0
+    result = rsmb.survey(references, captures, out, report=False)
+    assert isinstance(result, rsmb.SurveyResult) and (result.done, result.skipped, result.failed) == (0, 1, 0)
+    assert result.captures[0].reason.startswith("done with the same key")

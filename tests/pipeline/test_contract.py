@@ -2,6 +2,7 @@
 cannot be written exits 2 with exactly one line on stderr naming the flag or
 the path, before any work starts, and leaves nothing behind."""
 
+import contextlib
 import hashlib
 import os
 import signal
@@ -11,6 +12,7 @@ import sys
 import pytest
 
 from rsmb.pipeline import _detect
+from rsmb.pipeline import _survey
 from rsmb.pipeline.cli import main
 
 from .conftest import read_store
@@ -210,3 +212,115 @@ def test_other_commands_keep_the_contract(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and named in err[0], (args, err)
         assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"], args
+
+
+# ------------------------------------------------------------------------- survey
+
+
+@pytest.fixture(scope="module")
+def survey_inputs(tmp_path_factory):
+    """A georeferenced reference and one capture of it, in a folder of their own."""
+    import numpy as np
+
+    from rsmb import ops
+    from rsmb.pipeline._archive import CaptureSpec, write_capture, write_reference
+
+    root = tmp_path_factory.mktemp("survey-inputs")
+    scene = (0.05 + 0.7 * ops.aerial_scene((192, 192), seed=3)).astype(np.float32)
+    references = write_reference(root / "reference", scene)
+    write_capture(root / "incoming" / "cap.tif", scene, CaptureSpec((32, 32), (96, 96), seed=1, changes=1))
+    return references[0], str(root / "incoming" / "*.tif")
+
+
+@pytest.fixture
+def no_survey_work(monkeypatch):
+    """Looking for captures fails the test: errors must come before work starts."""
+
+    def find_captures(*args, **kwargs):
+        raise AssertionError("the survey looked for captures")
+
+    monkeypatch.setattr(_survey, "find_captures", find_captures)
+
+
+BAD_SURVEY_OPTIONS = [
+    (["--parallel", "0"], "--parallel"),
+    (["--workers", "0"], "--workers"),
+    (["--tile-size", "0"], "--tile-size"),
+    (["--axes", "foo"], "--axes"),
+    (["--step", "0"], "--step"),
+    (["--worker-timeout", "-1"], "--worker-timeout"),
+    (["--worker-timeout", "nan"], "--worker-timeout"),
+    (["--threshold", "otsu"], "--threshold"),
+    (["--scheduler", "bogus"], "--scheduler"),
+    (["--captures", ""], "--captures"),
+    (["--captures", "  "], "--captures"),
+    (["--bogus-flag"], "--bogus-flag"),
+]
+
+
+@pytest.mark.parametrize("args, flag", BAD_SURVEY_OPTIONS, ids=[" ".join(a) or "empty" for a, _ in BAD_SURVEY_OPTIONS])
+def test_survey_bad_option_exits_2_with_one_line(tmp_path, survey_inputs, capsys, no_survey_work, args, flag):
+    reference, captures = survey_inputs
+    assert main(["survey", str(reference), "--captures", captures, "-o", str(tmp_path / "night"), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and flag in err[0], err
+    assert os.listdir(tmp_path) == []
+
+
+def _bad_survey_invocations(tmp_path, monkeypatch):
+    """(name, extra arguments, what the message must name, the context it runs
+    in) of survey invocations that are bad input; files are made here."""
+    import dask
+
+    afile = tmp_path / "afile"
+    afile.write_text("not a directory")
+    other = tmp_path / "other"  # a folder of someone else's files, no ledger
+    other.mkdir()
+    (other / "notes.txt").write_text("keep")
+
+    def unconfigured():
+        pytest.importorskip("dask_jobqueue")  # its defaults in dask's configuration: no cores, no memory
+        return dask.config.set({"jobqueue.slurm.cores": None, "jobqueue.slurm.memory": None,
+                                "jobqueue.pbs.cores": None, "jobqueue.pbs.memory": None})
+
+    @contextlib.contextmanager
+    def no_extra():
+        with monkeypatch.context() as patch:
+            patch.setitem(sys.modules, "dask_jobqueue", None)  # the import fails as without the cluster extra
+            yield
+
+    night = str(tmp_path / "night")
+    return [
+        ("a file", ["-o", str(afile)], str(afile), contextlib.nullcontext),
+        ("under a file", ["-o", str(afile / "night")], str(afile / "night"), contextlib.nullcontext),
+        ("a folder of other files", ["-o", str(other)], str(other), contextlib.nullcontext),
+        ("slurm unconfigured", ["-o", night, "--scheduler", "slurm"], "--scheduler", unconfigured),
+        ("pbs unconfigured", ["-o", night, "--scheduler", "pbs"], "--scheduler", unconfigured),
+        ("slurm without the extra", ["-o", night, "--scheduler", "slurm"], "--scheduler", no_extra),
+        ("a missing reference", ["-o", night, str(tmp_path / "missing.tif")], "missing.tif", contextlib.nullcontext),
+        ("a reference that is no image", ["-o", night, str(afile)], str(afile), contextlib.nullcontext),
+    ]
+
+
+def test_survey_bad_invocations_exit_2_before_work(tmp_path, survey_inputs, capsys, no_survey_work, monkeypatch):
+    reference, captures = survey_inputs
+    cases = _bad_survey_invocations(tmp_path, monkeypatch)
+    listing = sorted(os.walk(tmp_path))
+    for name, args, named, context in cases:
+        with context():
+            assert main(["survey", str(reference), "--captures", captures, *args]) == 2, name
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and named in err[0], (name, err)
+        assert sorted(os.walk(tmp_path)) == listing, name  # nothing left behind
+    assert (tmp_path / "other" / "notes.txt").read_text() == "keep"
+
+
+def test_survey_output_may_be_new_empty_or_a_survey(tmp_path, survey_inputs, capsys):
+    reference, captures = survey_inputs
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    survey = ["-q", "survey", str(reference), "--captures", captures, "--no-report", "-o"]
+    assert main([*survey, str(tmp_path / "new"), "--dry-run"]) == 0 and not (tmp_path / "new").exists()
+    assert main([*survey, str(empty)]) == 0
+    assert main([*survey, str(empty), "--dry-run"]) == 0  # a survey's folder: its ledger decides
+    assert "would skip" in capsys.readouterr().out

@@ -1,12 +1,15 @@
 """Workflow files: validation, and a small nightly run end to end."""
 
 import json
+import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
 from rsmb import ops
+from rsmb.pipeline._archive import CaptureSpec, write_capture, write_reference
 from rsmb.pipeline._workflow import load_workflow
 from rsmb.pipeline.cli import main
 
@@ -17,6 +20,18 @@ WORKFLOWS = Path(__file__).resolve().parents[2] / "workflows"
 def test_shipped_workflows_are_valid(name):
     data = load_workflow(WORKFLOWS / name)
     assert data.steps
+
+
+@pytest.mark.slow
+def test_the_nightly_example_runs(tmp_path):
+    """The shipped example, copied out of the source tree (its outputs land
+    beside the file): every step done, its survey step included."""
+    path = tmp_path / "nightly-example.yaml"
+    path.write_text((WORKFLOWS / "nightly-example.yaml").read_text())
+    assert main(["-q", "run", str(path)]) == 0
+    steps = json.loads((tmp_path / "nightly-example" / "nightly-example.summary.json").read_text())
+    assert [s["status"] for s in steps] == ["done"] * len(steps) and steps[-1]["kind"] == "survey"
+    assert steps[-1]["result"]["done"] == 1 and (tmp_path / "nightly-example" / "survey" / "distorted").is_dir()
 
 
 def test_small_workflow_runs(tmp_path, monkeypatch):
@@ -47,6 +62,16 @@ def test_small_workflow_runs(tmp_path, monkeypatch):
     ({"steps": [{"explode": {}}]}, "unknown step"),
     ({"detect": {"tile": 5}, "steps": [{"report": {"store": "x"}}]}, "unknown keys"),
     ({"schedular": "threads", "steps": [{"report": {"store": "x"}}]}, "unknown keys"),
+    ({"steps": [{"survey": {"references": [], "captures": "in/*.tif", "output": "n"}}]}, "references"),
+    ({"steps": [{"survey": {"references": "r.tif", "captures": " ", "output": "n"}}]}, "captures"),
+    ({"steps": [{"survey": {"references": "r.tif", "captures": "in/*.tif", "output": "n", "parallel": 0}}]},
+     "parallel"),
+    ({"steps": [{"survey": {"references": "r.tif", "captures": "in/*.tif", "output": "n", "resume": True}}]},
+     "unknown keys"),  # a survey resumes by its ledger
+    ({"steps": [{"survey": {"references": "r.tif", "captures": "in/*.tif", "output": "n", "step": [1, 1]}}]},
+     r"step 1 \(survey\): step: expected 1 or 3 values"),
+    ({"steps": [{"detect": {"reference": "a", "distorted": "b", "output": "o", "half_width": [1, 2]}}]},
+     r"step 1 \(detect\): half_width: expected 1 or 3 values"),
 ])
 def test_invalid_workflows_are_refused_before_running(tmp_path, flow, words):
     path = tmp_path / "bad.yaml"
@@ -144,3 +169,79 @@ def test_check_validates_without_running(tmp_path, capsys):
     path = _failing_night(tmp_path, keep_going=False)
     assert main(["run", str(path), "--check"]) == 0
     assert "valid, 5 steps" in capsys.readouterr().out and not (tmp_path / "pair").exists()
+
+
+def _survey_archive(root):
+    """A reference mosaic of two files and a night: two good captures and a
+    truncated one (it fails)."""
+    scene = (0.05 + 0.7 * ops.aerial_scene((384, 384), seed=7)).astype(np.float32)
+    write_reference(root / "reference", scene, split=2)
+    for k, origin in enumerate([(40, 40), (150, 150)]):
+        write_capture(root / "incoming" / f"cap{k}.tif", scene, CaptureSpec(origin, (192, 192), seed=10 + k,
+                                                                           changes=2))
+    data = (root / "incoming" / "cap0.tif").read_bytes()
+    (root / "incoming" / "truncated.tif").write_bytes(data[:len(data) // 2])
+
+
+def test_a_survey_step_fails_with_its_night_and_resumes_by_its_ledger(tmp_path, monkeypatch):
+    _survey_archive(tmp_path)
+    path = _write(tmp_path, {"name": "nightly", "keep_going": True, "steps": [
+        {"survey": {"references": ["reference/mosaic_0.tif", "reference/mosaic_1.tif"], "captures": "incoming/*.tif",
+                    "output": "night", "slow_axes": "none", "report": False}},
+        # inside the survey's output, so written by it; the archive wrote each capture's truth beside it
+        {"evaluate": {"store": "night/cap0/changes.zarr", "truth": "incoming/cap0.truth"}},
+    ]})
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)  # paths and the glob are relative to the workflow file
+    assert main(["-q", "run", str(path)]) == 3
+    survey, evaluate = json.loads((tmp_path / "nightly.summary.json").read_text())
+    assert survey["status"] == "failed" and survey["reason"].startswith("1 of 3 captures failed")
+    result = survey["result"]
+    assert (result["done"], result["skipped"], result["failed"]) == (2, 0, 1)
+    assert list(result["failed_captures"]) == [str(tmp_path / "incoming" / "truncated.tif")]
+    assert evaluate["status"] == "done" and evaluate["result"]["changes"]["f_measure"] > 0.8  # keep_going
+    assert os.listdir(elsewhere) == []
+    # the night again: done captures skipped, nothing rewritten; the truncated capture retried, fails again
+    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "night").glob("cap*/*.tif")}
+    assert len(stamps) == 6
+    assert main(["-q", "run", str(path)]) == 3
+    (tmp_path / "incoming" / "truncated.tif").unlink()
+    assert main(["-q", "run", str(path)]) == 0
+    survey, evaluate = json.loads((tmp_path / "nightly.summary.json").read_text())
+    assert survey["status"] == "done" and (survey["result"]["done"], survey["result"]["skipped"]) == (0, 2)
+    assert stamps == {p: p.stat().st_mtime_ns for p in (tmp_path / "night").glob("cap*/*.tif")}
+
+
+def test_a_survey_step_is_checked_before_any_step_runs(tmp_path, capsys):
+    _survey_archive(tmp_path)
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "todo.txt").write_text("someone else's")
+    survey = {"references": ["reference/mosaic_0.tif"], "captures": "incoming/*.tif", "output": "night"}
+    cases = [({**survey, "references": ["reference/missing.tif"]}, "references: "),
+             ({**survey, "references": ["incoming/cap0.truth/change_mask.png"]}, "not georeferenced"),
+             ({**survey, "output": "notes"}, "output is a folder of other files")]
+    for options, words in cases:
+        path = _write(tmp_path, {"steps": [{"synth": {"out_dir": "pair", "size": 64, "changes": 0}},
+                                           {"survey": options}]})
+        assert main(["-q", "run", str(path)]) == 2, options
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "step 2 (survey)" in err[0] and words in err[0], err
+        assert not (tmp_path / "pair").exists() and not (tmp_path / "night").exists()
+    path = _write(tmp_path, {"steps": [{"survey": survey}]})
+    assert main(["run", str(path), "--check"]) == 0
+    assert "step 1 survey" in capsys.readouterr().out and not (tmp_path / "night").exists()
+
+
+def test_a_jobqueue_scheduler_is_a_name_not_a_file(tmp_path, capsys):
+    pytest.importorskip("dask_jobqueue")
+    import dask
+
+    path = _write(tmp_path, {"scheduler": "slurm", "steps": [{"synth": {"out_dir": "pair", "size": 64}}]})
+    with dask.config.set({"jobqueue.slurm.cores": None, "jobqueue.slurm.memory": None}):
+        assert main(["run", str(path), "--check"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "scheduler: slurm: dask's jobqueue configuration has no jobqueue.slurm.cores" in err[0]
+    with dask.config.set({"jobqueue.slurm.cores": 4, "jobqueue.slurm.memory": "8GB"}):
+        assert main(["run", str(path), "--check"]) == 0
+    assert load_workflow(path).scheduler == "slurm"

@@ -2,6 +2,8 @@
 change polygons in a GeoPackage (CRS, one feature per component, pixel sums,
 areas, inside the footprint)."""
 
+import logging
+
 import numpy as np
 import pyogrio
 import pytest
@@ -181,3 +183,22 @@ def test_gpkg_refuses_to_clobber(tmp_path, mask, score):
     assert target.read_bytes() == b"keep"
     write_changes_gpkg(target, [], GEO.crs, overwrite=True)
     assert pyogrio.read_info(target, layer="changes")["features"] == 0
+
+
+def test_gpkg_write_keeps_pyogrio_info_off_the_terminal(tmp_path, mask, score, caplog):
+    # pyogrio logs "Created N records" at INFO for every layer: a survey at INFO printed it per capture
+    def pyogrio_records():
+        return [r for r in caplog.records if r.name.startswith("pyogrio")]
+
+    features = change_polygons(mask, score, GEO)
+    caplog.set_level(logging.INFO)
+    write_changes_gpkg(tmp_path / "a.gpkg", features, GEO.crs)
+    assert pyogrio_records() == []
+    pyogrio.raw.write(str(tmp_path / "direct.gpkg"), np.array([_multipolygon_wkb(features[0].polygons)],
+                      dtype=object), [], [], layer="changes", driver="GPKG", geometry_type="MultiPolygon", crs=GEO.crs)
+    assert [r.levelno for r in pyogrio_records()] == [logging.INFO]  # pyogrio used directly: untouched
+
+    caplog.clear()
+    caplog.set_level(logging.DEBUG)
+    write_changes_gpkg(tmp_path / "b.gpkg", features, GEO.crs)
+    assert [(r.levelno, r.getMessage()) for r in pyogrio_records()] == [(logging.DEBUG, "Created 4 records")]
