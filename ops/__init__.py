@@ -26,6 +26,7 @@ from ._changes import (
 from ._errors import InputError, ParameterError, RSMBError, RunError, SolverError
 from ._forward import CameraPath, RenderResult, render
 from ._intensity import IntensityScale, intensity_scale
+from ._layers import LayerParams, LayerResult, depth_layers
 from ._metrics import ConfusionCounts, confusion, trajectory_rmse
 from ._oracle import ExactRowSolution, huber_objective, optimal_chi, row_objective, solve_row_exact
 from ._posespace import PoseSpace
@@ -57,6 +58,9 @@ __all__ = [
     "RegistrationParams",
     "IntensityScale",
     "intensity_scale",
+    "LayerParams",
+    "LayerResult",
+    "depth_layers",
     "Registration",
     "register",
     "SlowPath",

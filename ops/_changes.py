@@ -70,6 +70,9 @@ class ChangeParams:
         That fraction; a little under one half because the score is the
         residual less the Huber knee and object interiors are textured
         (calibrated on synthetic pairs, see the benchmark).
+    layers : bool
+        Test candidate changes against depth layers (:func:`ops.depth_layers`):
+        one that registers at some relative depth is parallax, not change.
     """
 
     threshold: object = "noise"
@@ -79,6 +82,7 @@ class ChangeParams:
     hysteresis: float = 0.5
     half_max_window: int = 15
     half_max: float = 0.42
+    layers: bool = True
 
     def __post_init__(self):
         t = self.threshold

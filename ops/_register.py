@@ -46,6 +46,12 @@ class Registration:
         row axes, then the slow ones: zero where no slow part was found).
     row_gain : ndarray, shape (H,)
         ``||w_i||_1`` per row (the illumination gain seen by that row).
+    row_weights : dict
+        Row -> (poses (n, D) over ``axes`` without the slow ones, weights (n,)):
+        the nonzero weights of every row's final solve, on the capture
+        divided by ``column_gain`` (what the depth-layer step re-renders).
+    column_gain : ndarray, shape (W,), or None
+        The gain along the rows folded into ``registered`` (None: none).
     row_state : ndarray, shape (H,), uint8
         1 solved, 2 homogeneous (centroid interpolated), 3 failed (no fit, or
         the solve stopped at ``params.max_outer`` iterations before
@@ -62,6 +68,9 @@ class Registration:
     row_state: np.ndarray
     axes: tuple
     timings: dict = field(default_factory=dict)
+    row_weights: dict = field(default_factory=dict)
+    column_gain: np.ndarray | None = None
+    slow: object = None
 
     @property
     def gain(self):
@@ -155,7 +164,7 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
         _fold_gain(out, dist, factor, delta)
     trajectory = np.concatenate([out.trajectory, _slow_columns(slow, params.slow_axes, dist.shape[0])], axis=1)
     return Registration(out.registered, out.chi, out.valid, trajectory, out.row_gain, out.row_state,
-                        params.trajectory_axes, timings)
+                        params.trajectory_axes, timings, out.weights, factor, slow)
 
 
 def _slow_columns(slow, axes, height):
@@ -201,6 +210,11 @@ class _Outputs:
         self.trajectory = np.full((height, dims), np.nan)
         self.row_gain = np.zeros(height)
         self.row_state = np.zeros(height, dtype=np.uint8)
+        self.weights = {}  # row -> (poses, weights) of its final solve, nonzero weights only
+
+    def keep_weights(self, row, poses, w):
+        keep = w > 0
+        self.weights[row] = (poses[keep], w[keep])
 
     def store(self, row, w, a, valid, g_row, delta):
         n = g_row.shape[0]
@@ -220,6 +234,9 @@ def _register_rolling(solver, candidates, informative, mid, out):
     run = _Propagation(solver, space, out)
     run.from_row(mid, center, informative)
     run.finish()
+    offsets = run.space.offsets()
+    for i, (lattice, w) in run.weights.items():
+        out.keep_weights(i, run.space.lattice_poses(np.asarray(lattice)[None, :] + offsets), w)
 
 
 def _register_global(solver, candidates, informative, out):
@@ -241,6 +258,7 @@ def _register_global(solver, candidates, informative, out):
     for i in range(height):
         a, g, valid = solver.problem.build([i], index, poses)
         out.store(i, w, a, valid, solver.problem.dist[i].astype(np.float64), solver.delta)
+        out.keep_weights(i, poses, w)
         out.trajectory[i] = c if c is not None else center
         out.row_state[i] = (1 if converged else 3) if informative[i] else 2
 
@@ -256,6 +274,7 @@ def _register_prior(solver, prior, informative, out):
             w0 = _shift_weights(previous[1], counts, space.snap(prior[i]) - previous[0])
         index, poses, w, a, valid = solver.solve([i], space, prior[i], w0)
         out.store(i, w, a, valid, solver.problem.dist[i].astype(np.float64), solver.delta)
+        out.keep_weights(i, poses, w)
         c = _centroid(poses, w)
         good = informative[i] and c is not None and valid.any() and solver.last_converged
         out.trajectory[i] = c if good else prior[i]

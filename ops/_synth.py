@@ -14,6 +14,7 @@ import numpy as np
 from ._camera import POSE_AXES, Camera, pose_homographies
 from ._errors import ParameterError
 from ._forward import CameraPath, render
+from ._layered import raise_structures, render_layered, with_roofs
 from ._scene import aerial_scene, paste_changes
 
 __all__ = ["MOTIONS", "SyntheticPair", "motion_path", "synthesize_pair"]
@@ -51,6 +52,11 @@ class SyntheticPair:
         Distorted pixels rendered from inside the scene.
     camera : Camera
     path : CameraPath
+    parallax_mask : ndarray of bool, shape (H, W), or None
+        With raised structures: where the capture sees a roof, or the ground
+        a roof hid in the reference (parallax, not change).
+    depths : tuple of float
+        Relative depth of each raised structure.
     """
 
     reference: np.ndarray
@@ -62,6 +68,8 @@ class SyntheticPair:
     valid: np.ndarray
     camera: Camera
     path: CameraPath
+    parallax_mask: np.ndarray | None = None
+    depths: tuple = ()
 
 
 def motion_path(motion, *, duration, seed, scale=1.0):
@@ -105,7 +113,7 @@ def _margin(path, camera, shape):
 
 def synthesize_pair(shape=(256, 256), *, motion="inplane", shutter="rolling", exposure=None, gain=1.0,
                     changes=6, change_size=(14, 36), noise=0.0, scale=1.0, focal=None, seed=0, path=None,
-                    scene=None, interpolation="bilinear"):
+                    scene=None, interpolation="bilinear", structures=0, depths=(0.4, 0.8)):
     """Make a reference and a distorted capture of it with known truth.
 
     Parameters
@@ -141,6 +149,11 @@ def synthesize_pair(shape=(256, 256), *, motion="inplane", shutter="rolling", ex
     interpolation : {"bilinear", "cubic"}
         How the capture is rendered (:func:`ops.render`): "cubic" is independent of
         the solver's warp kernel, for accuracy measured out of sample.
+    structures : int
+        Raised structures (flat roofs, 20 to 44 px) nearer to the camera than the
+        ground (:mod:`ops._layered`), away from the changes: parallax, not change.
+    depths : tuple of float
+        Range of their relative depths (distance over the ground's).
 
     Returns
     -------
@@ -169,19 +182,23 @@ def synthesize_pair(shape=(256, 256), *, motion="inplane", shutter="rolling", ex
     origin = (margin, margin)
     changed, pasted = paste_changes(scene, count=changes, size_range=change_size, seed=seed + 1,
                                     margin=margin + 12)
-    reference = np.ascontiguousarray(scene[origin[0]:origin[0] + height, origin[1]:origin[1] + width])
+    raised = raise_structures(scene, count=structures, depths=depths, size_range=(20, 44), seed=seed + 3,
+                              margin=margin + 24, avoid=pasted) if structures else []
+    reference = np.ascontiguousarray(with_roofs(scene, raised)[origin[0]:origin[0] + height,
+                                                               origin[1]:origin[1] + width])
     kw = dict(shape=shape, camera=camera, shutter=shutter, row_delay=1.0, exposure=exposure, source_origin_yx=origin,
               interpolation=interpolation)
     gain_map = _gain_map(gain, shape)
-    seen = render(changed, path, **kw)
-    seen_image = seen.image * gain_map
+    image, seen, parallax = render_layered(changed, raised, path, **kw)
+    seen_image = image * gain_map
     truth = render(pasted.astype(np.float32), path, **kw)
     distorted = seen_image
     if noise > 0:
         distorted = distorted + np.random.default_rng(seed + 2).normal(0, noise, distorted.shape).astype(np.float32)
     mask_ref = np.ascontiguousarray(pasted[origin[0]:origin[0] + height, origin[1]:origin[1] + width])
     return SyntheticPair(reference, distorted.astype(np.float32), truth.image > 0.5, mask_ref, seen.centroid,
-                         gain_map, seen.valid, camera, path)
+                         gain_map, seen.valid, camera, path, parallax if raised else None,
+                         tuple(s.depth for s in raised))
 
 
 def _gain_map(gain, shape):

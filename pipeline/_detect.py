@@ -134,6 +134,9 @@ class DetectResult:
     clipped_reference, clipped_capture : float
         Fraction of each image's valid pixels that are clipped (at zero or at
         a saturation value; no-data, never change; :mod:`ops._intensity`).
+    parallax_components, parallax_pixels : int
+        Candidate changes found to be depth layers (parallax, not change;
+        ``parallax_mask``), and their pixels.
     """
 
     output: str
@@ -157,6 +160,8 @@ class DetectResult:
     failed_rows: int = 0
     clipped_reference: float = 0.0
     clipped_capture: float = 0.0
+    parallax_components: int = 0
+    parallax_pixels: int = 0
 
     def as_dict(self):
         """The fields as a JSON-ready dict."""
@@ -322,7 +327,8 @@ def _register_tiles(runner, group, run, plan, resume, timings):
     todo = sorted((t for t in grid if not done[t.index]), key=lambda t: -_expected_cost(t, plan.camera))
     if resume:
         log.info("resume: %d of %d tiles already registered", len(grid) - len(todo), len(grid))
-    stats = runner.map("register", _tasks.register_task, [(run, t, plan.camera, plan.params) for t in todo])
+    stats = runner.map("register", _tasks.register_task,
+                       [(run, t, plan.camera, plan.params, plan.config.changes) for t in todo])
     timings["register_s"] = time.perf_counter() - t0
     timings["tiles_registered"] = len(todo)
     if stats:
@@ -347,7 +353,7 @@ def _fuse_paths(runner, group, run, plan, timings):
             rows = tile.core[0]
             others = np.delete(paths[rows], tx, axis=1)
             prior = _fuse(others, np.delete(states[rows], tx, axis=1))
-            args.append((run, tile, camera, plan.params, prior))
+            args.append((run, tile, camera, plan.params, plan.config.changes, prior))
         runner.map("re-solve", _tasks.register_task, args)
         paths, states, hist, _, gains = _tile_results(group)
         fused, agree, worst = _agreement(paths, states, grid, camera, axes)
@@ -442,6 +448,13 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff):
     place, GeoTIFFs on request."""
     axes = plan.params.trajectory_axes
     group.attrs.update(_attributes(plan, result, scheduler))
+    group.attrs["parallax"] = tiles.jsonable(
+        {"rule": "a candidate change is parallax when at its best relative depth (translations divided by it, "
+                 f"rotations kept; {plan.config.changes.layers and 'swept over ' + str(list(ops.LayerParams().depths)) or 'not tested: --no-layers'}) "
+                 f"at least {ops._layers.MIN_EXPLAINED:.0%} of its pixels fall below the change threshold "
+                 f"and those plus the pixels of ground the layer hid in the reference make up at least "
+                 f"{ops._layers.MIN_COVERED:.0%} of it",
+         "components": _tasks.layer_components(group)})
     tiles.write_spatial_coords(group, plan.distorted.geo, plan.shape)
     group["trajectory"].attrs.update({"pose_axes": list(axes), "units": [ops.AXIS_UNITS[a] for a in axes]})
     for name in ("work", "ingest"):
@@ -550,7 +563,9 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             timings=timings, pairing=plan.pairing.mode,
             reference_coverage=None if plan.pairing.coverage is None else plan.pairing.coverage.fraction,
             failed_rows=int((group["tile_row_state"][:] == 3).sum()),
-            clipped_reference=run.intensity.reference_clipped, clipped_capture=run.intensity.capture_clipped)
+            clipped_reference=run.intensity.reference_clipped, clipped_capture=run.intensity.capture_clipped,
+            parallax_components=len(_tasks.layer_components(group)),
+            parallax_pixels=int(sum(c["pixels"] for c in _tasks.layer_components(group))))
         _finish(group, store, plan, result, scheduler, overwrite, geotiff)
         return result
     except BaseException as error:

@@ -32,6 +32,7 @@ def _specs(grid, dims, margin=0):
         "change_score": spec((h, w), "float32", (t, t), ("y", "x"), 0.0),
         "change_mask": spec((h, w), "uint8", (t, t), ("y", "x")),
         "change_mask_reference": spec((h, w), "uint8", (t, t), ("y", "x")),
+        "parallax_mask": spec((h, w), "uint8", (t, t), ("y", "x")),
         "trajectory": spec((h, dims), "float32", (t, dims), ("y", "pose_axis"), float("nan")),
         "tile_trajectory": spec((h, nx, dims), "float32", (h, nx, dims), ("y", "tile_x", "pose_axis"), float("nan")),
         "tile_row_state": spec((h, nx), "uint8", (h, nx), ("y", "tile_x")),
@@ -44,12 +45,18 @@ def _specs(grid, dims, margin=0):
                                   compressed=False),
         "work/labels": spec((h, w), "int32", (t, t), ("y", "x"), compressed=False),
         "work/slow": spec((h, 3), "float32", (h, 3), ("y", "slow"), float("nan"), compressed=False),
+        "work/tile_layers": spec((ny, nx, LAYER_SLOTS, len(LAYER_FIELDS)), "float64",
+                                 (1, 1, LAYER_SLOTS, len(LAYER_FIELDS)), ("tile_y", "tile_x", "layer", "field"),
+                                 float("nan"), compressed=False),
         "ingest/reference": spec((h + 2 * margin, w + 2 * margin), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
         "ingest/distorted": spec((h, w), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
     }
 
 
 _HIST = (ops.RESIDUAL_BINS, ops.SCORE_BINS)
+#: Depth layers a tile records (the largest), and what it records of each.
+LAYER_SLOTS = 32
+LAYER_FIELDS = ("row", "col", "pixels", "depth", "explained", "rmse")
 _SUMMARY = sum(_HIST) + 3  # per tile: both histograms, gain, seconds; 1 when done
 
 
@@ -145,10 +152,11 @@ def _slow_prior(store, tile, params):
     return ops.SlowPath(found[:, :2], found[:, 2])
 
 
-def register_task(store, tile, camera, params, prior=None):
-    """Stage 1: register one tile and write its core outputs.  The tile's
-    summary row (histograms, gain, seconds, and 1 in its last column) is written
-    last: it marks the tile complete for ``--resume``.
+def register_task(store, tile, camera, params, changes, prior=None):
+    """Stage 1: register one tile, tell parallax from change on it (when
+    ``changes.layers``) and write its core outputs.  The tile's summary row
+    (histograms, gain, seconds, and 1 in its last column) is written last: it
+    marks the tile complete for ``--resume``.
 
     Returns
     -------
@@ -162,17 +170,21 @@ def register_task(store, tile, camera, params, prior=None):
     distorted = store.read("capture", *tile.core)
     read = time.perf_counter() - start
     dist_valid = np.isfinite(distorted)
-    result = ops.register(reference, np.nan_to_num(distorted), camera=camera, params=params,  # NaN: nodata
+    capture = np.nan_to_num(distorted)  # NaN: no-data
+    result = ops.register(reference, capture, camera=camera, params=params,
                           reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
                           distorted_valid=dist_valid, prior=prior, slow=_slow_prior(store, tile, params))
     tile.check_core(result.registered)
-    score = np.where(result.valid, np.abs(result.chi), np.nan)  # no-data where unknown or clipped
-    residual = np.where(result.valid, distorted - result.registered, 0.0)
+    layers = _depth_layers(result, reference, capture, camera, tile, params, changes)
+    score = np.where(result.valid, np.where(layers.parallax, 0.0, np.abs(layers.chi)), np.nan)  # NaN: unknown
+    residual = np.where(result.valid, distorted - layers.registered, 0.0)
     hist = ops.score_histogram(residual, score, result.valid)
     write_start = time.perf_counter()
-    registered = result.registered if store.intensity is None else store.intensity.to_input(result.registered)
+    registered = layers.registered if store.intensity is None else store.intensity.to_input(layers.registered)
     _array(store, "registered")[tile.core] = registered  # in the capture's units
     _array(store, "change_score")[tile.core] = score.astype(np.float32)
+    _array(store, "parallax_mask")[tile.core] = layers.parallax.astype(np.uint8)
+    _array(store, "work/tile_layers")[ty, tx] = _layer_table(layers.components, tile)
     _array(store, "work/tile_rows")[tile.core[0], tx] = np.concatenate(
         [result.trajectory, result.row_state[:, None]], axis=1).astype(np.float32)
     seconds = time.perf_counter() - start
@@ -180,6 +192,41 @@ def register_task(store, tile, camera, params, prior=None):
         [hist.residual, hist.score, [result.gain, seconds, 1.0]])
     return {"index": tile.index, "seconds": seconds, "read_s": read, "write_s": time.perf_counter() - write_start,
             "kernel_s": write_start - start - read, "pixels": h * w, "gain": result.gain}
+
+
+def _depth_layers(result, reference, capture, camera, tile, params, changes):
+    """:func:`ops.depth_layers` of one tile with the change threshold of the
+    tile's own residuals (the mosaic's is not known yet), or the registration
+    as it is when ``changes.layers`` is off."""
+    if not changes.layers:
+        return ops.LayerResult(np.zeros(result.valid.shape, bool), result.registered, result.chi)
+    residual = np.where(result.valid, capture - result.registered, 0.0)
+    hist = ops.score_histogram(residual, np.abs(result.chi), result.valid)
+    return ops.depth_layers(result, reference, capture, camera=camera,
+                            threshold=ops.change_threshold(hist, params=changes),
+                            reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
+                            lambda_chi=params.lambda_chi)
+
+
+def _layer_table(components, tile):
+    """A tile's depth layers as rows of :data:`LAYER_FIELDS` in image pixels,
+    the largest :data:`LAYER_SLOTS` of them, NaN in unused slots."""
+    table = np.full((LAYER_SLOTS, len(LAYER_FIELDS)), np.nan)
+    for k, c in enumerate(sorted(components, key=lambda c: -c["pixels"])[:LAYER_SLOTS]):
+        c = dict(c, row=c["row"] + tile.core_origin[0], col=c["col"] + tile.core_origin[1])
+        table[k] = [c[f] for f in LAYER_FIELDS]
+    return table
+
+
+def layer_components(group):
+    """Every tile's depth layers from the store's scratch table: a list of dicts
+    of :data:`LAYER_FIELDS` (image pixels), the largest first."""
+    table = group["work/tile_layers"][:].reshape(-1, len(LAYER_FIELDS))
+    rows = table[np.isfinite(table[:, 0])]
+    out = [dict(zip(LAYER_FIELDS, (float(v) for v in row))) for row in rows]
+    for c in out:
+        c["pixels"] = int(c["pixels"])
+    return sorted(out, key=lambda c: -c["pixels"])
 
 
 def label_task(store, block, shape, threshold, change_params):

@@ -43,6 +43,7 @@ class _MethodOptions(_Model):
     lambda_chi: Annotated[float, Field(gt=0)] = 0.02
     threshold: Literal["noise", "kapur"] | Annotated[float, Field(gt=0)] = "noise"
     min_area: Annotated[int, Field(ge=0)] = 20
+    no_layers: bool = False
     focal: Annotated[float, Field(gt=0)] | None = None
     tile_size: Annotated[int, Field(ge=32)] | None = None
     overlap: Annotated[int, Field(ge=0)] | None = None
@@ -60,7 +61,7 @@ class _MethodOptions(_Model):
         return build_config(text(self.axes), text(self.half_width), text(self.step),
                             text(self.search) if self.search else None, self.shutter, self.solver, self.lambda_w,
                             self.lambda_chi, str(self.threshold), self.min_area, self.focal, self.tile_size,
-                            self.overlap, slow_axes=text(self.slow_axes))
+                            self.overlap, slow_axes=text(self.slow_axes), layers=not self.no_layers)
 
 
 class DetectOptions(_MethodOptions):

@@ -136,6 +136,9 @@ def registration_options(func):
                           "entropy threshold) or a number (score units, intensities in [0, 1])."),
         click.option("--min-area", type=click.IntRange(min=0), default=20, show_default=True,
                      help="Smallest change kept, pixels."),
+        click.option("--no-layers", is_flag=True,
+                     help="Do not test candidate changes against depth layers (by default one that registers at "
+                          "some relative depth is parallax, in parallax_mask, not change)."),
         click.option("--focal", type=Number(min=0, min_open=True), default=None,
                      help="Focal length in pixels of the whole image. Default 1.2 x the larger side."),
     ]
@@ -145,7 +148,7 @@ def registration_options(func):
 
 
 def build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold, min_area,
-                 focal, tile=None, overlap=None, *, slow_axes="rx,ry"):
+                 focal, tile=None, overlap=None, *, slow_axes="rx,ry", layers=True):
     """A :class:`pipeline.DetectConfig` from command-line values."""
     from ._detect import DetectConfig
 
@@ -161,7 +164,7 @@ def build_config(axes, half_width, step, search, shutter, solver, lambda_w, lamb
         search=_floats(search, "--search", len(axes), minimum=0) if search else tuple(_SEARCH[a] for a in axes),
         shutter=shutter, solver=solver, lambda_w=lambda_w, lambda_chi=lambda_chi,
         slow_axes=_slow_axes(slow_axes))
-    changes = ops.ChangeParams(threshold=threshold, min_area=min_area)
+    changes = ops.ChangeParams(threshold=threshold, min_area=min_area, layers=layers)
     return DetectConfig(registration=reg, changes=changes, tile=tile, overlap=overlap, focal=focal)
 
 
@@ -215,13 +218,13 @@ def _quiet_library_warnings():
               help="Also write the masks as GeoTIFFs into this directory (existing files need --overwrite).")
 @click.option("--json", "as_json", is_flag=True, help="Print the run summary as JSON.")
 def detect(reference, distorted, output, axes, half_width, step, slow_axes, search, shutter, solver, lambda_w,
-           lambda_chi, threshold, min_area, focal, tile_size, overlap, scheduler, workers, worker_timeout, resume,
-           overwrite, geotiff, as_json):
+           lambda_chi, threshold, min_area, no_layers, focal, tile_size, overlap, scheduler, workers, worker_timeout,
+           resume, overwrite, geotiff, as_json):
     """Register DISTORTED against REFERENCE and write change masks to a zarr store."""
     from ._detect import detect as run
 
     config = build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold,
-                          min_area, focal, tile_size, overlap, slow_axes=slow_axes)
+                          min_area, focal, tile_size, overlap, slow_axes=slow_axes, layers=not no_layers)
     summary = run(reference, distorted, output, config=config, scheduler=scheduler, workers=workers,
                   overwrite=overwrite, resume=resume, geotiff=geotiff, worker_timeout=worker_timeout)
     _print_summary(summary, as_json)
@@ -377,8 +380,8 @@ def _check_captures(ctx, param, value):
 @click.option("--json", "as_json", is_flag=True, help="Print the night's summary as JSON on stdout.")
 @click.pass_context
 def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes, search, shutter, solver, lambda_w,
-           lambda_chi, threshold, min_area, focal, tile_size, overlap, scheduler, workers, worker_timeout, parallel,
-           dry_run, no_report, as_json):
+           lambda_chi, threshold, min_area, no_layers, focal, tile_size, overlap, scheduler, workers, worker_timeout,
+           parallel, dry_run, no_report, as_json):
     """A night of georeferenced captures (--captures GLOB) against REFERENCE files.
 
     Each capture gets a folder with its store, changes.gpkg, COGs, thumbnail
@@ -387,7 +390,7 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes
     from ._survey import survey as run
 
     config = build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold,
-                          min_area, focal, tile_size, overlap, slow_axes=slow_axes)
+                          min_area, focal, tile_size, overlap, slow_axes=slow_axes, layers=not no_layers)
     result = run(references, captures, out_dir, config=config, scheduler=scheduler, workers=workers,
                  parallel=parallel, dry_run=dry_run, worker_timeout=worker_timeout, report=not no_report)
     if as_json:
