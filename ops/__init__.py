@@ -4,7 +4,7 @@ the per-row solvers of eq. 13, registration, change masks and metrics.
 Pure numpy (with numba-compiled inner loops); no I/O, no dask, no zarr.
 """
 
-from ._baseline import EccResult, ecc_homography
+from ._baseline import EccResult, dis_flow, ecc_homography, orb_homography
 from ._camera import AXIS_UNITS, POSE_AXES, Camera, full_poses, pose_homographies
 from ._changes import (
     RESIDUAL_BINS,
@@ -52,6 +52,8 @@ __all__ = [
     "PoseSpace",
     "EccResult",
     "ecc_homography",
+    "orb_homography",
+    "dis_flow",
     "CameraPath",
     "RenderResult",
     "render",
