@@ -370,7 +370,9 @@ def _build(capture, aside, folder, references, config, runner, report):
     geo = tiles.GeoInfo.from_attrs(group.attrs.asdict())
     write_products(store, aside, geo, geo)
     features = tiles.change_polygons(group["change_mask"], group["change_score"], geo)
-    tiles.write_changes_gpkg(aside / "changes.gpkg", features, geo.crs)
+    # dated by the capture, not the clock: a capture redone gives the same file
+    tiles.write_changes_gpkg(aside / "changes.gpkg", features, geo.crs,
+                             last_change=os.stat(capture).st_mtime)
     from ._survey_html import write_thumbnail
 
     write_thumbnail(group, aside / "thumbnail.png")

@@ -19,9 +19,11 @@ pixel's area).  Without a CRS, ``area_m2`` is NaN.
 
 from __future__ import annotations
 
+import datetime
 import os
 import struct
 import tempfile
+import threading
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
@@ -304,6 +306,7 @@ def write_changes_gpkg(
     features: Sequence[ChangePolygon],
     crs: str | None,
     *,
+    last_change: float | None = None,
     overwrite: bool = False,
 ) -> Path:
     """Write change polygons as a GeoPackage, layer ``changes``.
@@ -317,6 +320,10 @@ def write_changes_gpkg(
         is written).
     crs : str or None
         The capture's CRS (WKT or ``"EPSG:..."``); None leaves it undefined.
+    last_change : float, optional
+        POSIX time recorded as ``gpkg_contents.last_change``; None records the
+        time of writing.  A fixed time makes the file a function of its
+        features only: the same features give the same bytes.
     overwrite : bool
         Replace an existing file.
 
@@ -351,8 +358,35 @@ def write_changes_gpkg(
     ]
     with _aside(final) as tmp:
         out = Path(tmp) / final.name
-        with quiet_gdal():
+        with quiet_gdal(), _gpkg_date(last_change):
             write(str(out), geometry, field_data, list(CHANGES_FIELDS), layer=CHANGES_LAYER,
                   driver="GPKG", geometry_type="MultiPolygon", crs=crs)
         _move_into_place(out, final, overwrite)
     return final
+
+
+#: pyogrio's GDAL configuration is process-wide: one GeoPackage date at a time.
+_GPKG_DATE_LOCK = threading.Lock()
+
+
+class _gpkg_date:
+    """Scope in which GDAL's GeoPackage driver stamps ``stamp`` (POSIX time)
+    as every date it writes (GDAL's ``OGR_CURRENT_DATE``); None changes nothing."""
+
+    def __init__(self, stamp):
+        self.value = None if stamp is None else datetime.datetime.fromtimestamp(
+            stamp, datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
+
+    def __enter__(self):
+        if self.value is not None:
+            from pyogrio import set_gdal_config_options
+
+            _GPKG_DATE_LOCK.acquire()
+            set_gdal_config_options({"OGR_CURRENT_DATE": self.value})
+
+    def __exit__(self, *exc):
+        if self.value is not None:
+            from pyogrio import set_gdal_config_options
+
+            set_gdal_config_options({"OGR_CURRENT_DATE": None})
+            _GPKG_DATE_LOCK.release()

@@ -202,3 +202,24 @@ def test_gpkg_write_keeps_pyogrio_info_off_the_terminal(tmp_path, mask, score, c
     caplog.set_level(logging.DEBUG)
     write_changes_gpkg(tmp_path / "b.gpkg", features, GEO.crs)
     assert [(r.levelno, r.getMessage()) for r in pyogrio_records()] == [(logging.DEBUG, "Created 4 records")]
+
+
+def test_gpkg_dated_by_last_change_is_the_same_file_every_time(tmp_path, mask, score):
+    # a survey dates changes.gpkg by its capture: a redone capture (or a night
+    # resumed after a kill) must give the same bytes, in threads at once too
+    import sqlite3
+    from concurrent.futures import ThreadPoolExecutor
+
+    features = change_polygons(mask, score, GEO)
+    stamps = [1.7e9, 1.7e9, 1.7e9 + 86400.25, 1.7e9]
+    with ThreadPoolExecutor(4) as pool:
+        paths = list(pool.map(lambda i: write_changes_gpkg(tmp_path / f"{i}.gpkg", features, GEO.crs,
+                                                           last_change=stamps[i]), range(4)))
+    data = [p.read_bytes() for p in paths]
+    assert data[0] == data[1] == data[3] != data[2]
+    with sqlite3.connect(paths[2]) as db:
+        assert db.execute("SELECT last_change FROM gpkg_contents").fetchall() == [("2023-11-15T22:13:20.250Z",)]
+    undated = write_changes_gpkg(tmp_path / "now.gpkg", features, GEO.crs)  # no date: GDAL's clock again
+    with sqlite3.connect(undated) as db:
+        assert db.execute("SELECT last_change FROM gpkg_contents").fetchone()[0].startswith("20")
+    assert undated.read_bytes() != data[0]
