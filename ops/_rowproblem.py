@@ -6,6 +6,7 @@ import numpy as np
 
 from ._camera import full_poses
 from ._oracle import solve_row_exact
+from ._propagate_kernels import _Settings
 from ._rowsolve import _solve_huber_nn
 from ._warp import _build_row, _gather_row, _warp_into
 
@@ -215,8 +216,6 @@ class _Solver:
 
     def settings(self, width):
         """The compiled kernels' settings for rows of ``width`` pixels."""
-        from ._propagate import _Settings
-
         p = self.params
         return _Settings(float(p.lambda_w), float(self.delta), float(p.tol), int(p.max_outer), int(p.max_add),
                          self.min_valid(width))
