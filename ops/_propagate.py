@@ -13,8 +13,8 @@ solved on their own around the interpolated path.
 
 import numpy as np
 
-from ._propagate_kernels import (_Capture, _follow, _Gather, _jumps, _Lattice, _Prewarp, _propagate_rows, _row_step,
-                                 _RowOutputs, _trust_state)
+from ._propagate_kernels import (_Capture, _Context, _follow, _Gather, _jumps, _Lattice, _Neighbour, _Prewarp,
+                                 _propagate_rows, _Row, _row_step, _RowOutputs, _Source, _trust_state)
 from ._rowproblem import _centroid
 from ._start import _refine_start
 
@@ -93,10 +93,9 @@ class _Propagation:
         w = np.zeros(self.size) if w0 is None else w0
         if self._a is None:
             self._a = np.empty((self.size, problem.width), dtype=np.float32)
-        objective, count, solver.last_converged = _row_step(problem.stack, _Gather(slot, shift_y, shift_x), int(y),
-                                                            problem.margin,
-                                     problem.dist[i], problem.dist_valid[i], w, solver.settings(problem.width),
-                                     self._a, out.registered[i], out.chi[i], out.valid[i])
+        source = _Source(problem.stack, _Gather(slot, shift_y, shift_x), int(y), problem.margin)
+        row = _Row(problem.dist[i], problem.dist_valid[i], out.registered[i], out.chi[i], out.valid[i])
+        objective, count, solver.last_converged = _row_step(source, row, solver.settings(problem.width), w, self._a)
         solver.last_cost = objective / max(count, 1)
         out.row_gain[i] = w.sum()
         return w
@@ -136,67 +135,96 @@ class _Propagation:
 
     def _compiled(self, rows, start, informative, trust):
         """:func:`from_row`'s loop in compiled code (:func:`_propagate_rows`),
-        returning to Python only to pre-warp a rotation band it needs."""
-        solver, problem, out, space = self.solver, self.solver.problem, self.out, self.space
-        height, k = len(informative), self.size
+        returning to Python only for what it cannot do: make a pre-warped image
+        it needs, solve a row whose grid leaves the table of them, re-anchor the
+        path where a row jumps off it."""
+        problem, out = self.solver.problem, self.out
+        arr = self._compiled_arrays(len(informative))
+        lattice = _Lattice(arr["offsets"], arr["counts"], self.step, -1 if problem.ty is None else problem.ty,
+                           -1 if problem.tx is None else problem.tx, arr["other"], self.px_per_unit)
+        capture = _Capture(problem.dist, problem.dist_valid, informative)
+        outputs = _RowOutputs(out.registered, out.chi, out.valid, out.trajectory, out.row_state, out.row_gain,
+                              arr["weights"], arr["centers"])
+        settings = self.solver.settings(problem.width)
+        prev, pos, c_prev = start, 0, out.trajectory[start].astype(np.float64)
+        anchor = np.empty((2, len(self.step)))
+        while pos < len(rows):
+            center_prev, w_prev = self.weights[prev]
+            # the stack grows as pre-warped images are made: read it afresh
+            stack = problem.stack if problem.stack is not None else np.empty((1, 1, 1), np.float32)
+            prewarp = _Prewarp(stack, arr["table"], arr["other_lo"], arr["band_lo"], problem.BAND, problem.pad,
+                               problem.margin)
+            reached, other_index, band, status = _propagate_rows(
+                _Context(prewarp, lattice, settings, capture, outputs), rows[pos:],
+                _Neighbour(c_prev, center_prev, w_prev), self._a, trust, anchor)
+            prev = self._keep_weights(rows[pos:pos + reached], prev)
+            pos += reached
+            c_prev = out.trajectory[prev].astype(np.float64)
+            if status == 1:
+                self._make_prewarp(other_index, band)
+            elif status == 2:  # outside the table: this row the Python way, then carry on
+                prev = self._solve_outside(rows[pos], prev)
+                pos += 1
+            elif status == 3:
+                c_prev = self._reanchor(rows[pos:], informative, anchor[0], anchor[1], trust)
+
+    def _compiled_arrays(self, height):
+        """The compiled loop's arrays, made on first use: the table of
+        pre-warped image slots by (other-axis lattice index - ``other_lo``,
+        band - ``band_lo``), wide enough for the search range and every band
+        of the window; the weights and lattice centres of every row; the
+        lattice offsets and counts; F_i's work space."""
         if self._arrays is None:
+            solver, problem, k = self.solver, self.solver.problem, self.size
             reach = problem.margin + problem.pad
             other = problem.other[0] if problem.other else -1
             span = int(np.ceil(solver.params.search[other] / self.step[other])) + 4 * max(self.counts) if other >= 0 else 0
             band_lo = (problem.margin - reach) // problem.BAND - 1
             band_hi = (height + problem.margin + reach) // problem.BAND + 1
             self._arrays = dict(table=np.full((2 * span + 1, band_hi - band_lo + 1), -1, np.int64), other_lo=-span,
-                                band_lo=band_lo, weights=np.zeros((height, k)), centers=np.zeros((height, len(self.step)),
-                                                                                                  np.int64),
-                                other=other, offsets=np.ascontiguousarray(space.offsets()),
+                                band_lo=band_lo, weights=np.zeros((height, k)),
+                                centers=np.zeros((height, len(self.step)), np.int64), other=other,
+                                offsets=np.ascontiguousarray(self.space.offsets()),
                                 counts=np.asarray(self.counts, np.int64))
             if self._a is None:
                 self._a = np.empty((k, problem.width), dtype=np.float32)
-        arr = self._arrays
-        lattice = _Lattice(arr["offsets"], arr["counts"], self.step, -1 if problem.ty is None else problem.ty,
-                           -1 if problem.tx is None else problem.tx, arr["other"], self.px_per_unit)
-        capture = _Capture(problem.dist, problem.dist_valid, informative)
-        outputs = _RowOutputs(out.registered, out.chi, out.valid, out.trajectory, out.row_state, out.row_gain,
-                              arr["weights"], arr["centers"])
-        settings = solver.settings(problem.width)
-        prev, pos, c_prev = start, 0, out.trajectory[start].astype(np.float64)
-        anchor = np.empty((2, len(self.step)))
-        while pos < len(rows):
-            center_prev, w_prev = self.weights[prev]
-            stack = problem.stack if problem.stack is not None else np.empty((1, 1, 1), np.float32)
-            prewarp = _Prewarp(stack, arr["table"], arr["other_lo"], arr["band_lo"], problem.BAND, problem.pad,
-                               problem.margin)
-            reached, other_index, band, status = _propagate_rows(
-                prewarp, lattice, settings, capture, outputs, rows[pos:], prev, c_prev, center_prev, w_prev, self._a,
-                trust, anchor)
-            for i in rows[pos:pos + reached]:
-                if out.row_state[i] != 2:
-                    self.weights[i] = (arr["centers"][i].copy(), arr["weights"][i].copy())
-                if out.row_state[i] == 1:
-                    prev = i
-            pos += reached
-            c_prev = out.trajectory[prev].astype(np.float64)
-            if status == 1:
-                index = np.zeros(len(self.step), np.int64)
-                if arr["other"] >= 0:
-                    index[arr["other"]] = other_index
-                key = (other_index,) if arr["other"] >= 0 else ()
-                generation = problem.generation
-                slot = problem._slot(key, index, band)
-                if problem.generation != generation:  # slots of far bands were reused
-                    self._refill_table()
-                arr["table"][other_index - arr["other_lo"], band - arr["band_lo"]] = slot
-            elif status == 2:
-                # outside the table: this row the Python way, then carry on
-                i = rows[pos]
-                c = self.solve_row(i, out.trajectory[prev], prev)
-                if c is None or not out.valid[i].any() or not self.solver.last_converged:
-                    out.row_state[i] = 3
-                else:
-                    out.trajectory[i], out.row_state[i], prev = c, 1, i
-                pos += 1
-            elif status == 3:
-                c_prev = self._reanchor(rows[pos:], informative, anchor[0], anchor[1], trust)
+        return self._arrays
+
+    def _keep_weights(self, rows, prev):
+        """Keep the grid and weights of every row the compiled loop fitted;
+        returns the last solved row (``prev`` if none)."""
+        arr, state = self._arrays, self.out.row_state
+        for i in rows:
+            if state[i] != 2:
+                self.weights[i] = (arr["centers"][i].copy(), arr["weights"][i].copy())
+            if state[i] == 1:
+                prev = i
+        return prev
+
+    def _make_prewarp(self, other_index, band):
+        """Pre-warp the image of ``other_index`` (lattice index of the other
+        axis) for ``band`` and enter its slot in the table."""
+        problem, arr = self.solver.problem, self._arrays
+        index = np.zeros(len(self.step), np.int64)
+        if arr["other"] >= 0:
+            index[arr["other"]] = other_index
+        key = (other_index,) if arr["other"] >= 0 else ()
+        generation = problem.generation
+        slot = problem._slot(key, index, band)
+        if problem.generation != generation:  # slots of far bands were reused
+            self._refill_table()
+        arr["table"][other_index - arr["other_lo"], band - arr["band_lo"]] = slot
+
+    def _solve_outside(self, i, prev):
+        """Row ``i``, whose grid leaves the table, solved the Python way around
+        the last solved row ``prev``; returns the new last solved row."""
+        out = self.out
+        c = self.solve_row(i, out.trajectory[prev], prev)
+        if c is None or not out.valid[i].any() or not self.solver.last_converged:
+            out.row_state[i] = 3
+            return prev
+        out.trajectory[i], out.row_state[i] = c, 1
+        return i
 
     def _reanchor(self, rows, informative, own, predicted, trust):
         """The path re-anchored at ``rows[0]`` (see

@@ -8,7 +8,10 @@ neighbour's weights (:func:`_row_step`) and follows the path, returning to
 Python (:mod:`ops._propagate`) only when it needs a pre-warped image that is
 not made yet, leaves the table of them, or sees the path jump.
 
-The kernels take some of their many arrays as small structs (NamedTuples).
+Every kernel takes its many arrays as a few NamedTuples, grouped by who owns
+them: the run (:class:`_Context`), the neighbour a row starts from
+(:class:`_Neighbour`), one row (:class:`_Source`, :class:`_Row`) and work space
+(:class:`_Work`).
 """
 
 from typing import NamedTuple
@@ -40,13 +43,7 @@ DRIFT_PX = 0.75
 DRIFT_PX_PER_ROW = 0.1
 
 
-class _Gather(NamedTuple):
-    """Where each pose k of a grid reads ``F_i``: pre-warped image ``slot[k]``
-    shifted by whole pixels ``shift_y[k]``, ``shift_x[k]`` (int64 (K,) each)."""
-
-    slot: np.ndarray
-    shift_y: np.ndarray
-    shift_x: np.ndarray
+# ----------------------------------------------------------------- the run's structs
 
 
 class _Settings(NamedTuple):
@@ -116,20 +113,91 @@ class _RowOutputs(NamedTuple):
     centers: np.ndarray
 
 
+class _Context(NamedTuple):
+    """Everything the compiled propagation shares across rows: read
+    (``prewarp``, ``lattice``, ``settings``, ``capture``) and written
+    (``out``)."""
+
+    prewarp: _Prewarp
+    lattice: _Lattice
+    settings: _Settings
+    capture: _Capture
+    out: _RowOutputs
+
+
+# ------------------------------------------------------------ one row's structs
+
+
+class _Gather(NamedTuple):
+    """Where each pose k of a grid reads ``F_i``: pre-warped image ``slot[k]``
+    shifted by whole pixels ``shift_y[k]``, ``shift_x[k]`` (int64 (K,) each)."""
+
+    slot: np.ndarray
+    shift_y: np.ndarray
+    shift_x: np.ndarray
+
+
+class _Source(NamedTuple):
+    """Where one row reads ``F_i``: pose k reads row ``y - gather.shift_y[k]``
+    of ``stack[gather.slot[k]]`` from column ``x0 - gather.shift_x[k]`` on
+    (stack (S, rows, cols) float32)."""
+
+    stack: np.ndarray
+    gather: _Gather
+    y: int
+    x0: int
+
+
+class _Row(NamedTuple):
+    """One row of the capture, ``g`` (N,) float32 and its validity (N,) bool,
+    and the rows of the outputs it writes: registered, chi (N,) float32, valid
+    (N,) bool."""
+
+    g: np.ndarray
+    g_valid: np.ndarray
+    registered: np.ndarray
+    chi: np.ndarray
+    valid: np.ndarray
+
+
+class _Neighbour(NamedTuple):
+    """The solved row a row starts from: its centroid pose (D,), the lattice
+    centre of its grid (D,) int64 and its weights (K,) on that grid."""
+
+    centroid: np.ndarray
+    center: np.ndarray
+    weights: np.ndarray
+
+
+class _Work(NamedTuple):
+    """Work space of one row, overwritten by each: ``F_i`` (K, N) float32, the
+    weights (K,), the lattice centre of the grid (D,) int64 and where its poses
+    read (:class:`_Gather`)."""
+
+    a: np.ndarray
+    w: np.ndarray
+    center: np.ndarray
+    gather: _Gather
+
+
+# ------------------------------------------------------------------------ kernels
+
+
 @numba.njit(**_SUMS)
-def _row_step(stack, gather, y, x0, g_row, g_valid, w, settings, a, reg_out, chi_out, valid_out):
+def _row_step(source, row, settings, w, a):
     """One row of the propagation in a single call (no Python in between):
-    gather ``F_i`` (pose k reads pre-warped image ``gather.slot[k]`` shifted by
-    ``gather.shift_y[k]``, ``gather.shift_x[k]``) into the work array ``a``
-    (K, N), solve eq. 13 warm-started from ``w`` (in place), and write the
-    registered row, the change term and the validity into the outputs (NaN / 0
-    / False where invalid).  Returns (objective, valid pixel count, whether
-    the solve converged); the objective is inf when too few pixels are valid
-    to solve.
+    gather ``F_i`` from ``source`` into the work array ``a`` (K, N), solve
+    eq. 13 warm-started from ``w`` (in place), and write the registered row,
+    the change term and the validity into ``row`` (NaN / 0 / False where
+    invalid).  Returns (objective, valid pixel count, whether the solve
+    converged); the objective is inf when too few pixels are valid to solve.
     """
     k_count, n = a.shape
     delta = settings.delta
-    v = _gather_row(stack, gather.slot, gather.shift_y, gather.shift_x, y, x0, a)
+    g_row, g_valid = row.g, row.g_valid
+    reg_out, chi_out, valid_out = row.registered, row.chi, row.valid
+    gather = source.gather
+    v = _gather_row(source.stack, gather.slot, gather.shift_y, gather.shift_x, source.y, source.x0, a)
     g = np.empty(n)
     count = 0
     for j in range(n):
@@ -171,19 +239,21 @@ def _row_step(stack, gather, y, x0, g_row, g_valid, w, settings, a, reg_out, chi
 
 
 @numba.njit(**_SUMS)
-def _solve_at(pose, i, prewarp, lattice, settings, capture, out, prev_center, w_prev, a, w, center, gather):
-    """Solve row ``i`` on the grid ``N(pose, b, s)``, warm-started from the
-    weights ``w_prev`` of a grid centred at ``prev_center`` (None-like: a
-    negative first entry of ``prev_center`` is never used, see the caller).
-    Writes the row's outputs, ``w`` and ``center``.  Returns (status, other
-    lattice index, band, cost per valid pixel, valid count, negative when the
-    solve stopped at its iteration limit): status 0 solved, 1 a pre-warped
-    image is missing, 2 the grid left the table."""
+def _solve_at(ctx, i, neighbour, work):
+    """Solve row ``i`` on the grid ``N(neighbour.centroid, b, s)``,
+    warm-started from the neighbour's weights shifted onto it.  Writes the
+    row's outputs and ``work.w``, ``work.center``, ``work.gather``.  Returns
+    (status, other lattice index, band, cost per valid pixel, valid count,
+    negative when the solve stopped at its iteration limit): status 0 solved,
+    1 a pre-warped image is missing, 2 the grid left the table."""
+    prewarp, lattice, capture, out = ctx.prewarp, ctx.lattice, ctx.capture, ctx.out
     table, other_lo, band_lo = prewarp.table, prewarp.other_lo, prewarp.band_lo
     offsets, counts, step = lattice.offsets, lattice.counts, lattice.step
     ty_dim, tx_dim, other_dim = lattice.ty_dim, lattice.tx_dim, lattice.other_dim
     k_count, dims = offsets.shape
-    slot, sy, sx = gather.slot, gather.shift_y, gather.shift_x
+    pose, prev_center, w_prev = neighbour.centroid, neighbour.center, neighbour.weights
+    w, center = work.w, work.center
+    slot, sy, sx = work.gather.slot, work.gather.shift_y, work.gather.shift_x
     for d in range(dims):
         center[d] = np.int64(np.round(pose[d] / step[d]))
     cy = np.int64(np.round(center[ty_dim] * step[ty_dim])) if ty_dim >= 0 else 0
@@ -214,9 +284,9 @@ def _solve_at(pose, i, prewarp, lattice, settings, capture, out, prev_center, w_
             src = src * counts[d] + m
         if inside:
             w[k] = w_prev[src]
-    objective, count, converged = _row_step(prewarp.stack, gather, y, prewarp.margin, capture.dist[i],
-                                            capture.dist_valid[i], w, settings, a, out.registered[i], out.chi[i],
-                                            out.valid[i])
+    source = _Source(prewarp.stack, work.gather, y, prewarp.margin)
+    row = _Row(capture.dist[i], capture.dist_valid[i], out.registered[i], out.chi[i], out.valid[i])
+    objective, count, converged = _row_step(source, row, ctx.settings, w, work.a)
     return 0, 0, 0, objective / max(count, 1), count if converged else -count
 
 
@@ -237,13 +307,12 @@ def _centroid_of(w, center, offsets, step, out):
 
 
 @numba.njit(**_SUMS)
-def _propagate_rows(prewarp, lattice, settings, capture, out, rows, prev, c_prev, prev_center, w_prev, a, trust,
-                    anchor):
+def _propagate_rows(ctx, rows, neighbour, a, trust, anchor):
     """Propagate the trajectory along ``rows`` (in order) from the solved row
-    ``prev`` (centroid ``c_prev``, lattice centre ``prev_center``, weights
-    ``w_prev``), all in compiled code: per row, the grid ``N(c_prev, b, s)``,
-    its pre-warped images (``prewarp.table[other index - other_lo, band -
-    band_lo]``, -1 if missing), a warm start shifted from the previous row,
+    ``neighbour`` (not changed), all in compiled code: per row, the grid
+    ``N(c, b, s)`` around the last solved row's centroid ``c``, its pre-warped
+    images (``ctx.prewarp.table[other index - other_lo, band - band_lo]``, -1
+    if missing), a warm start shifted from the last solved row,
     :func:`_row_step`, the centroid.  ``a`` (K, N) is work space; ``trust``
     (2 D + 2,) carries the path (last pose, velocity per row, its row, 1 when
     the caller has just re-anchored it) across calls.
@@ -255,22 +324,20 @@ def _propagate_rows(prewarp, lattice, settings, capture, out, rows, prev, c_prev
     ``anchor`` (2, D) holds it and the path's prediction): re-anchor the path
     on a block of rows and call again from that position.
     """
+    lattice, out = ctx.lattice, ctx.out
     offsets, step = lattice.offsets, lattice.step
     k_count, dims = offsets.shape
-    w = np.empty(k_count)
-    gather = _Gather(np.empty(k_count, np.int64), np.zeros(k_count, np.int64), np.zeros(k_count, np.int64))
-    center = np.empty(dims, np.int64)
+    work = _Work(a, np.empty(k_count), np.empty(dims, np.int64),
+                 _Gather(np.empty(k_count, np.int64), np.zeros(k_count, np.int64), np.zeros(k_count, np.int64)))
+    w, center = work.w, work.center
     c_own, predicted = np.empty(dims), np.empty(dims)
-    c_prev = c_prev.copy()
-    prev_center = prev_center.copy()
-    w_prev = w_prev.copy()
+    prev = _Neighbour(neighbour.centroid.copy(), neighbour.center.copy(), neighbour.weights.copy())
     for pos in range(rows.shape[0]):
         i = rows[pos]
-        if not capture.informative[i]:
+        if not ctx.capture.informative[i]:
             out.row_state[i] = 2
             continue
-        status, o, bnd, cost, count = _solve_at(c_prev, i, prewarp, lattice, settings, capture, out, prev_center,
-                                                w_prev, a, w, center, gather)
+        status, o, bnd, cost, count = _solve_at(ctx, i, prev, work)
         if status != 0:
             return pos, o, bnd, status
         total = _centroid_of(w, center, offsets, step, c_own)
@@ -288,12 +355,15 @@ def _propagate_rows(prewarp, lattice, settings, capture, out, rows, prev, c_prev
             return pos, 0, 0, 3  # off the path: the caller re-anchors on a block of rows
         _follow(c_own, i, trust)
         for d in range(dims):
-            c_prev[d] = c_own[d]
+            prev.centroid[d] = c_own[d]
             out.trajectory[i, d] = c_own[d]
         out.row_state[i] = 1
-        prev_center[:] = center
-        w_prev[:] = w
+        prev.center[:] = center
+        prev.weights[:] = w
     return rows.shape[0], 0, 0, 0
+
+
+# ----------------------------------------------------------------------- the path
 
 
 @numba.njit(**_SUMS)
