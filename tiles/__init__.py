@@ -28,18 +28,14 @@ from ._json import jsonable
 from ._luminance import as_float01
 from ._products import ChangePolygon, change_polygons, write_changes_gpkg, write_cog
 from ._stitch import TileLabels, merge_tile_labels
-from ._store import (
-    ArraySpec,
+from ._store import ArraySpec, create_result_store, open_result_store, update_attrs, write_array
+from ._store_atomic import (
     abort_result_store,
     check_writable,
-    create_result_store,
     finalize_result_store,
     is_complete_store,
-    open_result_store,
     partial_path,
     repair_interrupted_overwrite,
-    update_attrs,
-    write_array,
 )
 
 __all__ = [

@@ -1,9 +1,10 @@
-"""The zarr v3 output store: create in a partial directory, write, then rename.
+"""The zarr v3 output store: its arrays, their creation, writing and reading.
 
-A run writes into ``<path>.partial`` next to the final path and only
-:func:`finalize_result_store` makes it visible under the final name, so a failed
-run never leaves a half-written store at ``<path>``.  Every array carries
-``dimension_names`` and the final store has consolidated metadata, so
+A run creates the store with :func:`create_result_store` in a partial
+directory and makes it visible with :func:`finalize_result_store`
+(:mod:`tiles._store_atomic`: atomic rename, overwrite and its repair).  Every
+array carries ``dimension_names`` and the final store has consolidated
+metadata, so
 
 >>> import xarray as xr
 >>> ds = xr.open_zarr("out.zarr")  # doctest: +SKIP
@@ -19,9 +20,6 @@ A georeferenced store also has ``x`` / ``y`` coordinates and a CF ``spatial_ref`
 from __future__ import annotations
 
 import os
-import shutil
-import tempfile
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,27 +29,16 @@ import numpy as np
 from rsmb.ops._errors import InputError, ParameterError, one_line
 
 from ._json import jsonable
+from ._store_atomic import (_check_replaceable, _consolidate, _is_zarr_store, _replaced_path, abort_result_store,
+                            check_writable, is_complete_store, partial_path, repair_interrupted_overwrite)
 
 __all__ = [
     "ArraySpec",
-    "abort_result_store",
-    "check_writable",
-    "is_complete_store",
-    "repair_interrupted_overwrite",
     "create_result_store",
-    "finalize_result_store",
     "open_result_store",
-    "partial_path",
     "update_attrs",
     "write_array",
 ]
-
-_PARTIAL = ".partial"
-_REPLACED = ".replaced"
-_ZARR_MARKERS = ("zarr.json", ".zgroup", ".zarray")
-#: Root attribute :func:`finalize_result_store` sets: the store is whole.
-COMPLETE_ATTR = "complete"
-
 
 # image arrays of the output store (see ArraySpec.compressed)
 _COMPRESSORS = {"name": "blosc", "configuration": {"cname": "lz4", "clevel": 5, "shuffle": "shuffle"}}
@@ -104,123 +91,6 @@ class ArraySpec:
         object.__setattr__(self, "chunks", chunks)
         object.__setattr__(self, "dims", dims)
         object.__setattr__(self, "dtype", np.dtype(self.dtype).name)
-
-
-# ------------------------------------------------------------------------- helpers
-
-
-def _is_zarr_store(path: Path) -> bool:
-    return path.is_dir() and any((path / m).exists() for m in _ZARR_MARKERS)
-
-
-def _check_replaceable(path: Path, *, overwrite: bool) -> None:
-    """InputError unless ``path`` is absent, or a zarr store and ``overwrite``."""
-    if not os.path.lexists(path):
-        return
-    if not overwrite:
-        raise InputError(f"{path}: output exists; pass --overwrite to replace it")
-    if not _is_zarr_store(path):
-        raise InputError(
-            f"{path}: output exists and is not a zarr store; refusing to replace it"
-        )
-
-
-def check_writable(path: str | os.PathLike) -> None:
-    """Raise :class:`InputError` unless ``path`` can be created: its nearest
-    existing ancestor must be a directory in which a file can be written (tried,
-    so that read-only file systems, permissions and quotas all count).
-
-    Raises
-    ------
-    InputError
-        One line naming ``path`` and the reason.
-    """
-    target = Path(os.path.abspath(path))
-    parent = target.parent
-    while not os.path.lexists(parent):
-        parent = parent.parent
-    if not parent.is_dir():
-        raise InputError(f"{path}: cannot be created: {parent} is a file, not a directory")
-    try:
-        fd, probe = tempfile.mkstemp(prefix=".rsmb-write-test-", dir=parent)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as exc:
-        raise InputError(f"{path}: cannot write in {parent} ({exc.strerror or exc})") from None
-
-
-def _replaced_path(final: Path) -> Path:
-    return final.with_name(f"{final.name}{_REPLACED}")
-
-
-def is_complete_store(path: str | os.PathLike) -> bool:
-    """True for a store :func:`finalize_result_store` finished (its root
-    attribute ``complete`` says so)."""
-    import json
-
-    try:
-        meta = json.loads((Path(path) / "zarr.json").read_text())
-    except (OSError, ValueError):
-        return False
-    return bool(meta.get("attributes", {}).get(COMPLETE_ATTR))
-
-
-def repair_interrupted_overwrite(path: str | os.PathLike) -> str | None:
-    """Finish or undo an overwrite that was killed between its two renames.
-
-    :func:`finalize_result_store` moves an old store to ``<path>.replaced``,
-    renames the new one from ``<path>.partial`` to ``<path>``, then deletes the
-    old one.  Killed after the first rename, ``<path>`` is missing: the new
-    store is put in place when it is complete, otherwise the old one is put
-    back.  Killed before the deletion, the old store is deleted.
-
-    Returns
-    -------
-    str or None
-        What was done ("completed", "restored", "cleaned"), None if nothing was
-        interrupted.
-    """
-    final = Path(path)
-    old = _replaced_path(final)
-    if not os.path.lexists(old):
-        return None
-    if os.path.lexists(final):
-        shutil.rmtree(old, ignore_errors=True)
-        return "cleaned"
-    tmp = partial_path(final)
-    if is_complete_store(tmp):
-        os.replace(tmp, final)
-        shutil.rmtree(old, ignore_errors=True)
-        return "completed"
-    os.replace(old, final)
-    return "restored"
-
-
-def _group_path(group_or_path: Any) -> Path:
-    """Local directory of a zarr group (or a path given as is)."""
-    if isinstance(group_or_path, (str, os.PathLike)):
-        return Path(group_or_path)
-    store = getattr(group_or_path, "store", None)
-    root = getattr(store, "root", None)
-    if root is None:
-        raise ParameterError(
-            f"store: expected a path or a zarr group on a local directory, got "
-            f"{type(group_or_path).__name__}"
-        )
-    return Path(root) / group_or_path.path
-
-
-def _consolidate(path: Path) -> None:
-    import zarr
-
-    with warnings.catch_warnings():
-        # zarr-python warns that consolidated metadata is not (yet) in the v3 spec;
-        # xarray uses it, and it is what lets xr.open_zarr(path) work without warnings.
-        warnings.filterwarnings("ignore", message=".*[Cc]onsolidated metadata.*")
-        zarr.consolidate_metadata(str(path))
-
-
-# ---------------------------------------------------------------------- public API
 
 
 def create_result_store(
@@ -291,12 +161,6 @@ def create_result_store(
     return group
 
 
-def partial_path(path: str | os.PathLike) -> Path:
-    """The directory where a run writes the store that will become ``path``."""
-    final = Path(path)
-    return final.with_name(f"{final.name}{_PARTIAL}")
-
-
 def write_array(
     group, name: str, array: np.ndarray, region: tuple[slice, ...] | None = None
 ) -> None:
@@ -349,60 +213,6 @@ def _fmt_region(region: tuple[slice, ...]) -> str:
     return "[" + ", ".join(f"{bound(s.start)}:{bound(s.stop)}" for s in region) + "]"
 
 
-def finalize_result_store(
-    tmp_group_or_path, final_path: str | os.PathLike, *, overwrite: bool
-) -> Path:
-    """Consolidate the partial store's metadata and rename it to its final path.
-
-    The rename is atomic (one ``os.replace`` on the same file system).  When
-    ``overwrite`` is True an existing store is first moved to
-    ``<final>.replaced`` and deleted only after the new store is in place; a
-    run killed between the two renames is repaired by the next one (see
-    :func:`repair_interrupted_overwrite`).
-
-    Parameters
-    ----------
-    tmp_group_or_path : zarr.Group or path-like
-        The group returned by :func:`create_result_store`, or its directory.
-    final_path : str or path-like
-        Final path of the store.
-    overwrite : bool
-        Replace an existing store at ``final_path``.
-
-    Returns
-    -------
-    pathlib.Path
-        ``final_path``.  The group object passed in no longer points at a store: open
-        the result with :func:`open_result_store`.
-
-    Raises
-    ------
-    InputError
-        If ``final_path`` exists and ``overwrite`` is False, or is not a zarr store.
-    """
-    import zarr
-
-    tmp = _group_path(tmp_group_or_path)
-    final = Path(final_path)
-    if not _is_zarr_store(tmp):
-        raise InputError(f"{tmp}: no partial store to finalize")
-    _check_replaceable(final, overwrite=overwrite)
-    zarr.open_group(store=str(tmp), mode="r+").attrs[COMPLETE_ATTR] = True
-    _consolidate(tmp)
-    old = _replaced_path(final)
-    if os.path.lexists(final):
-        shutil.rmtree(old, ignore_errors=True)
-        os.replace(final, old)
-    try:
-        os.replace(tmp, final)
-    except BaseException:
-        if os.path.lexists(old) and not os.path.lexists(final):
-            os.replace(old, final)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
-    return final
-
-
 def update_attrs(path: str | os.PathLike, updates: dict[str, Any]) -> None:
     """Update the root attributes of a finished store (``updates`` through
     :func:`jsonable`) and consolidate its metadata again."""
@@ -410,23 +220,6 @@ def update_attrs(path: str | os.PathLike, updates: dict[str, Any]) -> None:
 
     zarr.open_group(store=str(path), mode="r+").attrs.update(jsonable(updates))
     _consolidate(Path(path))
-
-
-def abort_result_store(tmp_group_or_path) -> None:
-    """Delete a partial store (a no-op if it is already gone).
-
-    Raises
-    ------
-    ParameterError
-        If the path is not a ``<name>.partial`` directory, so a final store
-        is never deleted by mistake.
-    """
-    tmp = _group_path(tmp_group_or_path)
-    if _PARTIAL not in tmp.name:
-        raise ParameterError(
-            f"store: expected a partial store '<name>{_PARTIAL}', got {tmp}"
-        )
-    shutil.rmtree(tmp, ignore_errors=True)
 
 
 def open_result_store(path: str | os.PathLike):

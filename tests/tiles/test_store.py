@@ -1,4 +1,4 @@
-"""Tests of tiles._store: partial store, finalize/abort, overwrite, dims, JSON."""
+"""Tests of tiles._store and tiles._store_atomic: partial store, finalize/abort, overwrite, dims, JSON."""
 
 import datetime
 import json
@@ -13,15 +13,16 @@ from rasterio.crs import CRS
 from rasterio.transform import Affine
 
 from rsmb.ops._errors import InputError, ParameterError
-from rsmb.tiles._store import (
+from rsmb.tiles import (
     ArraySpec,
     abort_result_store,
     create_result_store,
     finalize_result_store,
+    jsonable,
     open_result_store,
     write_array,
+    write_spatial_coords,
 )
-from rsmb.tiles import jsonable, write_spatial_coords
 
 H, W, D = 30, 44, 6
 TILE = 16
