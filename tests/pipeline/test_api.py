@@ -1,6 +1,10 @@
 """``import rsmb``: the public API is the functions the commands call."""
 
+import importlib
+from pathlib import Path
+
 import numpy as np
+import pytest
 
 import rsmb
 from rsmb.pipeline.cli import main
@@ -22,14 +26,21 @@ def test_api_and_command_write_the_same_store(tmp_path, small_pair_files):
 
 
 def test_api_names(tmp_path):
-    paths = rsmb.synth(tmp_path / "pair", shape=(96, 96), changes=1, seed=2)
+    for name in rsmb.__all__:
+        value = getattr(rsmb, name)  # each public name resolves to an object ...
+        assert isinstance(value, str) if name == "__version__" else callable(value), name
+    paths = rsmb.synth(tmp_path / "pair", shape=(96, 96), changes=1, seed=2, fmt="tif")
     assert isinstance(paths, rsmb.PairPaths) and paths.reference.is_file() and paths.distorted.is_file()
     result = rsmb.detect(paths.reference, paths.distorted, tmp_path / "o.zarr")
+    assert isinstance(result, rsmb.DetectResult) and result.shape == [96, 96]
     scores = rsmb.evaluate(tmp_path / "o.zarr", tmp_path / "pair")
     assert isinstance(scores, rsmb.Evaluation) and 0 <= scores.changes.f_measure <= 1
     assert rsmb.report(tmp_path / "o.zarr").name == "index.html"
-    assert result.shape == [96, 96] and rsmb.__version__
-    assert set(rsmb.__all__) <= set(dir(rsmb))
+    # ... and a survey of a night with no captures finishes with nothing to do
+    night = rsmb.survey([paths.reference], str(tmp_path / "no-flight" / "*.tif"), tmp_path / "survey")
+    assert isinstance(night, rsmb.SurveyResult)
+    assert (night.captures, night.done, night.skipped, night.failed) == ([], 0, 0, 0)
+    assert Path(night.summary).is_file() and Path(night.index).is_file()
 
 
 def test_api_and_command_run_the_same_night(tmp_path):
@@ -46,3 +57,34 @@ def test_api_and_command_run_the_same_night(tmp_path):
     result = rsmb.survey(references, captures, out, report=False)
     assert isinstance(result, rsmb.SurveyResult) and (result.done, result.skipped, result.failed) == (0, 1, 0)
     assert result.captures[0].reason.startswith("done with the same key")
+
+
+class _Called(Exception):
+    pass
+
+
+# rsmb name -> (a command line, the module and function its command calls)
+_COMMANDS = {
+    "detect": (["detect", "ref.tif", "dist.tif", "-o", "o.zarr"], "rsmb.pipeline._detect", "detect"),
+    "survey": (["survey", "ref.tif", "--captures", "*.tif", "-o", "night"], "rsmb.pipeline._survey", "survey"),
+    "synth": (["synth", "pair"], "rsmb.pipeline._synth", "synth"),
+    "evaluate": (["evaluate", "o.zarr", "pair"], "rsmb.pipeline._evaluate", "evaluate"),
+    "report": (["report", "o.zarr"], "rsmb.pipeline._report", "write_report"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(_COMMANDS))
+def test_each_command_calls_its_api_function(name, tmp_path, monkeypatch, capsys):
+    argv, module, attribute = _COMMANDS[name]
+    monkeypatch.chdir(tmp_path)
+    api = getattr(rsmb, name)
+    assert getattr(importlib.import_module(module), attribute) is api
+    calls = []
+
+    def spy(*args, **kwargs):
+        calls.append(name)
+        raise _Called
+
+    monkeypatch.setattr(importlib.import_module(module), attribute, spy)
+    assert main(["-q", *argv]) == 1  # the spy's exception, reported as unexpected
+    assert calls == [name] and "_Called" in capsys.readouterr().err
