@@ -1,6 +1,7 @@
 """Running rsmb: dask scheduling of tile tasks, the click CLI, demo, reports."""
 
-from ._detect import VERSION, DetectConfig, DetectResult, default_overlap, detect
+from ._detect import detect
+from ._plan import VERSION, DetectConfig, DetectResult, default_overlap
 from ._evaluate import Evaluation, evaluate
 from ._report import write_report
 from ._survey import SurveyResult, survey

@@ -32,7 +32,8 @@ import numpy as np
 from rsmb import ops
 from rsmb import tiles
 
-from ._detect import DetectConfig, default_tile, detect
+from ._detect import detect
+from ._plan import DetectConfig, default_tile
 from ._evaluate import evaluate
 from ._synth import write_pair
 

@@ -15,7 +15,8 @@ from rsmb import ops
 from rsmb import tiles
 from rsmb.ops import InputError
 
-from ._detect import DetectConfig, detect
+from ._detect import detect
+from ._plan import DetectConfig
 from ._evaluate import evaluate
 from ._synth import write_pair
 

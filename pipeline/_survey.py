@@ -31,7 +31,8 @@ from rsmb import tiles
 from rsmb.ops import InputError, ParameterError, RSMBError
 from rsmb.ops._errors import one_line
 
-from ._detect import VERSION, DetectConfig, detect
+from ._detect import detect
+from ._plan import VERSION, DetectConfig
 from ._ledger import LEDGER_NAME, Ledger, RunKey
 from ._outputs import write_products
 from ._scheduler import check_scheduler, open_runner

@@ -1,6 +1,6 @@
 """Tile tasks: each reads its own windows from the zarr store, calls the ops
 kernels and writes its core.  Registration runs per tile; ingest, labelling
-and masks run per block of tiles (see ``pipeline._detect._block_grid``), a
+and masks run per block of tiles (see ``pipeline._plan._block_grid``), a
 :class:`tiles.Tile` of the coarser grid.  Top-level functions with plain
 arguments, so any dask scheduler (threads, processes, distributed) can run
 them."""

@@ -1,0 +1,249 @@
+"""What a :func:`~rsmb.pipeline.detect` run works on, decided before anything
+is written: its configuration (:class:`DetectConfig`), its summary
+(:class:`DetectResult`), the default tile and halo, the pairing of the
+capture with its reference, the tile grid and blocks, and the run key that a
+``--resume`` must find unchanged (stage 1 of ``detect``)."""
+
+import dataclasses
+import hashlib
+import json
+import logging
+from dataclasses import dataclass, field
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+import numpy as np
+
+from rsmb import ops
+from rsmb import tiles
+from rsmb.ops import ChangeParams, RegistrationParams
+
+__all__ = ["DetectConfig", "DetectResult", "default_overlap", "default_tile", "VERSION"]
+
+try:
+    VERSION = version("rsmb")
+except PackageNotFoundError:  # a source tree that is not installed
+    VERSION = "0+unknown"
+log = logging.getLogger("rsmb")
+
+
+@dataclass(frozen=True)
+class DetectConfig:
+    """Everything that decides the result of :func:`detect`.
+
+    Attributes
+    ----------
+    registration : RegistrationParams
+    changes : ChangeParams
+    tile : int or None
+        Core tile side in pixels; None picks :func:`default_tile`.
+    overlap : int or None
+        Halo in pixels; None derives it from the search range (see
+        :func:`default_overlap`).
+    focal : float or None
+        Focal length in pixels of the whole image (default 1.2 x larger side).
+    agreement : float
+        A tile whose path differs from its band's by more than this (px: the
+        95th percentile over its rows of the displacement of the row ends), and
+        by more than three times the band's median, is re-solved around the
+        others' path.
+    """
+
+    registration: RegistrationParams = field(default_factory=RegistrationParams)
+    changes: ChangeParams = field(default_factory=ChangeParams)
+    tile: int | None = None
+    overlap: int | None = None
+    focal: float | None = None
+    agreement: float = 2.0
+
+
+@dataclass(frozen=True)
+class DetectResult:
+    """Summary of one :func:`detect` run (also stored in the root attribute
+    ``summary`` of the output store).
+
+    Attributes
+    ----------
+    output : str
+        The store written.
+    shape : list of int
+        (H, W) of the capture.
+    tiles : list of int
+        (tiles_y, tiles_x).
+    tile_size, halo : int
+        Core tile side and halo, px.
+    threshold : float
+        The change threshold (score units).
+    changed_pixels : int
+    changed_fraction : float
+    components : int
+        Changes kept (connected components).
+    gain_min, gain_max : float
+        Range of the per-tile illumination gain.
+    resolved_tiles : list
+        Tiles re-solved around their band's path.
+    tile_agreement_px_max : float or None
+        Largest RMS disagreement of a tile's path with the fused one, px.
+    tasks_per_tile : float
+        Scheduled tasks per tile.
+    megapixels_per_s : float
+        Throughput of the whole run.
+    timings : dict
+        Seconds per stage and task sums.
+    pairing : str
+        "georeferenced" (the reference set resampled onto the capture grid) or
+        "pixel" (compared pixel for pixel).
+    reference_coverage : float or None
+        Fraction of the capture's footprint the reference set covers
+        (georeferenced pairing); the rest is no-data, never change.
+    failed_rows : int
+        Tile rows whose solve failed (no fit, or stopped at the iteration
+        limit before converging; ``tile_row_state`` 3): their pose is
+        interpolated from the rows around them.
+    clipped_reference, clipped_capture : float
+        Fraction of each image's valid pixels that are clipped (at zero or at
+        a saturation value; no-data, never change; :mod:`ops._intensity`).
+    parallax_components, parallax_pixels : int
+        Candidate changes found to be depth layers (parallax, not change;
+        ``parallax_mask``), and their pixels.
+    """
+
+    output: str
+    shape: list
+    tiles: list
+    tile_size: int
+    halo: int
+    threshold: float
+    changed_pixels: int
+    changed_fraction: float
+    components: int
+    gain_min: float
+    gain_max: float
+    resolved_tiles: list
+    tile_agreement_px_max: float | None
+    tasks_per_tile: float
+    megapixels_per_s: float
+    timings: dict
+    pairing: str = "pixel"
+    reference_coverage: float | None = None
+    failed_rows: int = 0
+    clipped_reference: float = 0.0
+    clipped_capture: float = 0.0
+    parallax_components: int = 0
+    parallax_pixels: int = 0
+
+    def as_dict(self):
+        """The fields as a JSON-ready dict."""
+        return tiles.jsonable(dataclasses.asdict(self))
+
+
+def default_tile(shape):
+    """1024-px tiles when the image holds at least 4 x 4 of them, else 512: large
+    tiles pay the per-tile start (wide search, start block) a quarter as often,
+    small ones keep the cores busy on small images (four tiles on two cores
+    leave a core idle while the slowest finishes).
+    Depends on the shape only, so a ``--resume`` finds the same grid."""
+    return 1024 if min(shape) >= 4 * 1024 else 512
+
+
+def default_overlap(params, camera, shape):
+    """Halo (px) that holds every displacement the wide search allows anywhere in
+    the image, plus the row neighbourhood: the extreme poses of the search box
+    are applied to the image corners."""
+    axes = params.axes + params.slow_axes
+    search = np.asarray(params.search + (params.slow_search,) * len(params.slow_axes))
+    corners = np.array([[0, 0, 1], [shape[1] - 1, 0, 1], [0, shape[0] - 1, 1], [shape[1] - 1, shape[0] - 1, 1.0]]).T
+    signs = np.array(np.meshgrid(*[[-1.0, 1.0]] * len(axes), indexing="ij")).reshape(len(axes), -1).T
+    hom = ops.pose_homographies(signs * search, camera, axes=axes, inverse=True)
+    pts = hom @ corners
+    pts = pts[:, :2] / pts[:, 2:3]
+    reach = float(np.abs(pts - corners[None, :2]).max())
+    hw = max([params.half_width[d] for d, a in enumerate(axes) if a in ("tx", "ty")] + [0.0])
+    return int(np.ceil(reach + 3 * hw)) + 8
+
+
+def _run_key(ref_infos, dist_info, config, grid):
+    """What a ``--resume`` must find unchanged: the inputs' checksums, the
+    configuration, the grid, the installed version and the kernels' version
+    (:data:`ops.KERNEL_VERSION`, raised whenever the kernels' results change)."""
+    text = json.dumps(tiles.jsonable({"reference": [r.sha256 for r in ref_infos], "distorted": dist_info.sha256,
+                                      "config": config, "grid": [grid.shape, grid.tile, grid.halo],
+                                      "version": VERSION, "kernels": ops.KERNEL_VERSION}), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+BLOCK = 1024  # px: the side the ingest, label and mask tasks aim for
+
+
+def _block_grid(grid):
+    """Blocks of tiles for ingest, labelling and masks: about :data:`BLOCK` px on a
+    side and at least two per axis when there are four tiles or more (both cores
+    stay busy).  Those tasks cost a few zarr calls and read a margin or halo
+    around their core: per block, not per small tile."""
+    ny, nx = grid.grid_shape
+    return grid.coarsened(max(1, min(BLOCK // grid.tile, ny // 2, nx // 2)))
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """What a run works on, derived before anything is written."""
+
+    pairing: tiles.Pairing
+    references: tuple  # ImageInfo of each reference file read
+    distorted: tiles.ImageInfo
+    output: Path
+    config: DetectConfig
+    camera: ops.Camera
+    params: RegistrationParams
+    grid: tiles.TileGrid
+    blocks: tiles.TileGrid
+    key: str
+
+    @property
+    def shape(self):
+        return self.grid.shape
+
+    @property
+    def margin(self):
+        """Pixels of reference ingested around the capture: the halo when the
+        reference is resampled onto the capture grid (it may extend beyond the
+        capture), none when the two are compared pixel for pixel."""
+        return self.grid.halo if self.pairing.mode == "georeferenced" else 0
+
+    @property
+    def reference_blocks(self):
+        """Blocks of the reference array (the capture grid grown by the margin)."""
+        m = self.margin
+        if m == 0:
+            return self.blocks
+        shape = (self.shape[0] + 2 * m, self.shape[1] + 2 * m)
+        return tiles.TileGrid(shape, self.grid.tile, 0).coarsened(self.blocks.tile // self.grid.tile)
+
+
+def _plan(references, distorted, output, config):
+    """Pair the capture with its reference set (by footprint when both are
+    georeferenced, else pixel for pixel), probe the inputs and derive the
+    camera, the resolved parameters, the tile grid and the run key."""
+    pairing = tiles.pair_images(references, distorted)
+    dist_info = tiles.probe_image(distorted)
+    read = pairing.reference_grids if pairing.mode == "georeferenced" else pairing.references
+    ref_infos = tuple(tiles.probe_image(getattr(r, "path", r)) for r in read)
+    shape = dist_info.shape
+    camera = ops.Camera.for_shape(shape, focal=config.focal)
+    params = config.registration.resolved(camera)
+    halo = config.overlap if config.overlap is not None else default_overlap(params, camera, shape)
+    tile = config.tile or default_tile(shape)
+    side = max(max(shape), 32)  # one tile of this side holds the image; a halo this wide reaches across it
+    if tile > side:
+        if config.tile:  # asked for, not the default
+            log.warning("note: tile size %d px is larger than the image (%d x %d): one tile of %d px", tile,
+                        *shape, side)
+        tile = side
+    if halo > side:
+        log.warning("note: overlap %d px reaches beyond the image (%d x %d): using %d px", halo, *shape, side)
+        halo = side
+    grid = tiles.TileGrid(shape, tile, halo)
+    # what runs, 'auto' resolved: the same run keys the same whichever way it was asked for
+    config = dataclasses.replace(config, registration=params, tile=grid.tile, overlap=grid.halo)
+    return _Plan(pairing, ref_infos, dist_info, Path(output), config, camera, params, grid, _block_grid(grid),
+                 _run_key(ref_infos, dist_info, config, grid))
