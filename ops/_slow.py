@@ -136,12 +136,14 @@ def estimate_slow(reference, distorted, valid, *, camera, reference_origin_yx, d
     fit = None
     # a quick flow on the images at half size decides whether there is a slow
     # part; when there may be, a flow at full resolution measures it
-    for scale, finest, stride in ((2, 1, 2 * FIT_STRIDE), (1, 0, FIT_STRIDE)):
-        flow = _flow(distorted, valid, under, finest, scale)
-        sample = None if flow is None else _sample(flow, ok, cx, cy, shifts, scale, stride)
+    for reduce, finest, stride in ((2, 1, 2 * FIT_STRIDE), (1, 0, FIT_STRIDE)):
+        flow = _flow(distorted, valid, under, finest, reduce)
+        sample = None if flow is None else _sample(flow, ok, cx, cy, shifts, reduce, stride)
         if sample is None:
             return None
-        fit = _fit(sample, height, float(camera.focal), axes, limit, SLOW_MIN_PX / scale, alone=scale == 1)
+        # SLOW_MIN_PX is in the capture's pixels; the quick pass is lenient
+        fit = _fit(sample, height, float(camera.focal), axes, limit, SLOW_MIN_PX / (scale * reduce),
+                   alone=reduce == 1)
         if fit is _NEGLIGIBLE:
             return None
     if not isinstance(fit, _Fit):

@@ -50,6 +50,20 @@ def test_yaw_and_pitch_are_found_on_the_window(yaw_pitch):
     assert np.abs(error).mean(axis=0).max() < 0.25, np.abs(error).mean(axis=0)
 
 
+def test_the_threshold_is_in_the_captures_pixels():
+    """A yaw of +-0.8 deg bends this window's rows by less than SLOW_MIN_PX: as
+    the capture itself it is negligible, but as a 4x overview of a capture 4
+    times larger the same bend is 4 times as many of that capture's pixels,
+    and the path is kept (and right)."""
+    pair = _pair(changes=0, ry=(-0.8, 0.8))
+    found = [ops.estimate_slow(pair.reference, pair.distorted, pair.valid, camera=pair.camera,
+                               reference_origin_yx=(0, 0), distorted_origin_yx=(0, 0), scale=scale)
+             for scale in (1, 4)]
+    assert found[0] is None and found[1] is not None
+    rows = pair.valid.mean(axis=1) > 0.5
+    assert np.abs(found[1].rotation[rows, 1] - pair.trajectory[rows, 4]).mean() < 0.1
+
+
 @pytest.mark.parametrize("motion", ["inplane", "translation"])
 def test_in_plane_motion_has_no_slow_part(motion):
     pair = ops.synthesize_pair(SHAPE, motion=motion, exposure=EXPOSURE, changes=6, noise=0.002, seed=4,
