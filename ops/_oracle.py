@@ -59,6 +59,10 @@ class ExactRowSolution:
         Wall time of ``Problem.solve`` alone (cvxpy compilation + solver), seconds.
     status : str
         cvxpy status, ``"optimal"``.
+    solver_seconds : float
+        The solver's own time as it reports it (cvxpy's
+        ``solver_stats.solve_time``; NaN when it reports none): what is left
+        of ``solve_seconds`` is cvxpy's compilation of the problem.
     """
 
     w: np.ndarray
@@ -66,6 +70,7 @@ class ExactRowSolution:
     objective: float
     solve_seconds: float
     status: str
+    solver_seconds: float = float("nan")
 
 
 def _check_lambda(name: str, value) -> float:
@@ -292,7 +297,7 @@ def solve_row_exact(
         k = F.shape[1]
         return ExactRowSolution(
             w=np.zeros(k), chi=np.zeros(F.shape[0]), objective=0.0,
-            solve_seconds=0.0, status=cp.OPTIMAL,
+            solve_seconds=0.0, status=cp.OPTIMAL, solver_seconds=0.0,
         )
     problem, w_var, chi_var = _build_problem(F, g, keep, lw, lc)
     t0 = time.perf_counter()
@@ -311,5 +316,11 @@ def solve_row_exact(
     chi[keep] = np.asarray(chi_var.value, dtype=np.float64)
     return ExactRowSolution(
         w=w, chi=chi, objective=float(problem.value), solve_seconds=seconds,
-        status=str(problem.status),
+        status=str(problem.status), solver_seconds=_solver_time(problem),
     )
+
+
+def _solver_time(problem):
+    stats = problem.solver_stats
+    seconds = None if stats is None else stats.solve_time
+    return float("nan") if seconds is None else float(seconds)
