@@ -55,7 +55,7 @@ class _MethodOptions(_Model):
 
     def config(self):
         """The :class:`DetectConfig` these options ask for."""
-        from .cli import build_config
+        from ._options import build_config
 
         text = lambda values: ",".join(map(str, values))  # noqa: E731
         return build_config(text(self.axes), text(self.half_width), text(self.step),

@@ -1,0 +1,170 @@
+"""The options the ``rsmb`` commands share and how they are checked: numbers
+per axis, the registration and change options of ``detect`` and ``survey``,
+the runtime options, and the :class:`DetectConfig` they build.  A bad value is
+a ``click.BadParameter`` naming its flag (exit 2, one line)."""
+
+import click
+import numpy as np
+
+from rsmb import ops
+
+__all__ = ["build_config", "registration_options", "runtime_options", "tile_option"]
+
+
+def _floats(text, name, count=None, allow_auto=False, minimum=None, positive=False):
+    """Comma-separated numbers (``auto`` -> None when allowed), one per axis or
+    one for all; each at least ``minimum`` (above 0 with ``positive``)."""
+    values = []
+    for token in text.split(","):
+        token = token.strip()
+        if allow_auto and token == "auto":
+            values.append(None)
+            continue
+        try:
+            value = float(token)
+        except ValueError:
+            raise click.BadParameter(f"expected comma-separated numbers, got {text!r}", param_hint=name) from None
+        if not np.isfinite(value) or (positive and value <= 0) or (minimum is not None and value < minimum):
+            bound = "> 0" if positive else f">= {minimum:g}"
+            raise click.BadParameter(f"expected numbers {bound}, got {token}", param_hint=name)
+        values.append(value)
+    if count is not None and len(values) not in (1, count):
+        raise click.BadParameter(f"expected 1 or {count} values (one per axis), got {len(values)}", param_hint=name)
+    return tuple(values) if count is None or len(values) == count else tuple(values) * count
+
+
+class Number(click.ParamType):
+    """A finite number, optionally bounded below (``min`` inclusive, or
+    exclusive with ``min_open``): click's FloatRange lets NaN through."""
+
+    name = "number"
+
+    def __init__(self, min=None, min_open=False):
+        self.min, self.min_open = min, min_open
+
+    def convert(self, value, param, ctx):
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"expected a number, got {value!r}", param, ctx)
+        if not np.isfinite(number):
+            self.fail(f"expected a finite number, got {value!r}", param, ctx)
+        if self.min is not None and (number < self.min or (self.min_open and number == self.min)):
+            self.fail(f"expected a number {'>' if self.min_open else '>='} {self.min:g}, got {value!r}", param, ctx)
+        return number
+
+
+def _check_threshold(ctx, param, value):
+    try:
+        ops.ChangeParams(threshold=value)
+    except ops.ParameterError:
+        raise click.BadParameter(f"expected 'noise', 'kapur' or a number > 0, got {value!r}") from None
+    return value
+
+
+def _check_scheduler(ctx, param, value):
+    from ._scheduler import check_scheduler
+
+    if value is not None:
+        try:
+            check_scheduler(value)
+        except ops.ParameterError as exc:
+            raise click.BadParameter(str(exc).split(": ", 1)[-1]) from None
+    return value
+
+
+def tile_option(help_text):
+    return click.option("--tile-size", type=click.IntRange(min=32), default=None, help=help_text)
+
+
+def runtime_options(func):
+    """Where and how a run executes (defined once for detect, demo and run)."""
+    options = [
+        click.option("--scheduler", default="threads", show_default=True, callback=_check_scheduler,
+                     help="threads, processes, synchronous, a tcp:// address, a scheduler file, or slurm / "
+                          "pbs (dask-jobqueue from dask's configuration; the cluster extra)."),
+        click.option("--workers", type=click.IntRange(min=1), default=None,
+                     help="Workers of a local scheduler (default: one per core), jobs of slurm/pbs."),
+        click.option("--worker-timeout", type=Number(min=0, min_open=True), default=60.0, show_default=True,
+                     help="Seconds a cluster run waits with no dask worker left before it fails (exit 1)."),
+    ]
+    for option in reversed(options):
+        func = option(func)
+    return func
+
+
+_SEARCH = {"tx": 20.0, "ty": 20.0, "s": 0.0, "rx": 0.0, "ry": 0.0, "rz": 3.0}
+
+
+def registration_options(func):
+    """Options shared by commands that run the method (defined once)."""
+    options = [
+        click.option("--axes", default="tx,ty,rz", show_default=True,
+                     help=f"Pose axes searched, from {','.join(ops.POSE_AXES)}."),
+        click.option("--half-width", default="auto", show_default=True,
+                     help="Row neighbourhood half-width b per axis (px, 1 or deg), or 'auto': 3 steps "
+                          "(tx,ty N(c,3,1) px as in the paper); widened automatically to the blur found in "
+                          "the middle rows."),
+        click.option("--step", default="auto", show_default=True,
+                     help="Grid step s per axis, or 'auto': 1 px for tx,ty; for rotations the angle that "
+                          "moves the farthest pixel by 1 px (the paper's rz step 0.5 deg: --step 1,1,0.5)."),
+        click.option("--slow-axes", default="rx,ry", show_default=True,
+                     help="Out-of-plane rotations (camera pitch rx, yaw ry) estimated as a slow part of the path "
+                          "on the whole capture before the rows, or 'none'."),
+        click.option("--search", default=None,
+                     help="Largest motion the initial wide search covers (+-) per axis. Default tx,ty 20 px, "
+                          "rz 3 deg."),
+        click.option("--shutter", type=click.Choice(["rolling", "global"]), default="rolling", show_default=True,
+                     help="'global' solves one weight vector for every row (captures known to be GS)."),
+        click.option("--solver", type=click.Choice(["fast", "exact"]), default="fast", show_default=True,
+                     help="Row solver: the fast active-set solver or the exact cvxpy (CLARABEL) oracle "
+                          "(seconds per row; small images only)."),
+        click.option("--lambda-w", type=Number(min=0), default=1e-3, show_default=True,
+                     help="Weight of ||w||_1 in eq. 13 (intensities in [0, 1])."),
+        click.option("--lambda-chi", type=Number(min=0, min_open=True), default=0.02, show_default=True,
+                     help="Weight of ||chi||_1 in eq. 13; residuals above half of it count as change."),
+        click.option("--threshold", default="noise", show_default=True, callback=_check_threshold,
+                     help="Change threshold: 'noise' (k robust sigmas of the residual), 'kapur' (the paper's "
+                          "entropy threshold) or a number (score units, intensities in [0, 1])."),
+        click.option("--min-area", type=click.IntRange(min=0), default=20, show_default=True,
+                     help="Smallest change kept, pixels."),
+        click.option("--no-layers", is_flag=True,
+                     help="Do not test candidate changes against depth layers (by default one that registers at "
+                          "some relative depth is parallax, in parallax_mask, not change)."),
+        click.option("--focal", type=Number(min=0, min_open=True), default=None,
+                     help="Focal length in pixels of the whole image. Default 1.2 x the larger side."),
+    ]
+    for option in reversed(options):
+        func = option(func)
+    return func
+
+
+def build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold, min_area,
+                 focal, tile=None, overlap=None, *, slow_axes="rx,ry", layers=True):
+    """A :class:`pipeline.DetectConfig` from command-line values."""
+    from ._plan import DetectConfig
+
+    axes = tuple(a.strip() for a in axes.split(",") if a.strip())
+    unknown = [a for a in axes if a not in ops.POSE_AXES]
+    if unknown or not axes or len(set(axes)) != len(axes):
+        raise click.BadParameter(f"expected distinct names from {','.join(ops.POSE_AXES)}, got {','.join(axes) or 'none'}",
+                                 param_hint="--axes")
+    reg = ops.RegistrationParams(
+        axes=axes,
+        half_width=_floats(half_width, "--half-width", len(axes), allow_auto=True, minimum=0),
+        step=_floats(step, "--step", len(axes), allow_auto=True, positive=True),
+        search=_floats(search, "--search", len(axes), minimum=0) if search else tuple(_SEARCH[a] for a in axes),
+        shutter=shutter, solver=solver, lambda_w=lambda_w, lambda_chi=lambda_chi,
+        slow_axes=_slow_axes(slow_axes))
+    changes = ops.ChangeParams(threshold=threshold, min_area=min_area, layers=layers)
+    return DetectConfig(registration=reg, changes=changes, tile=tile, overlap=overlap, focal=focal)
+
+
+def _slow_axes(text):
+    """``--slow-axes``: names from rx, ry, or 'none'."""
+    names = tuple(a.strip() for a in text.split(",") if a.strip())
+    if names == ("none",):
+        return ()
+    if not names or any(a not in ("rx", "ry") for a in names) or len(set(names)) != len(names):
+        raise click.BadParameter(f"expected rx, ry, rx,ry or none, got {text!r}", param_hint="--slow-axes")
+    return names
