@@ -7,35 +7,12 @@ import numpy as np
 import pytest
 
 from rsmb import ops
-from rsmb.pipeline import DetectConfig, detect, evaluate, write_pair
+from rsmb.pipeline import DetectConfig, detect, evaluate
+from rsmb.pipeline._bench_method import BIT_DEPTHS, clipped_pair
 
 from .conftest import read_store
 
 SHAPE = (256, 256)
-
-
-def _geotiff(path, data):
-    import rasterio
-
-    with rasterio.open(path, "w", driver="GTiff", height=data.shape[0], width=data.shape[1], count=1,
-                       dtype=data.dtype) as ds:
-        ds.write(data, 1)
-    return path
-
-
-def _png16(path, data):
-    assert cv2.imwrite(str(path), data.astype(np.uint16))
-    return path
-
-
-FORMATS = {
-    "8-bit png": lambda p, x: cv2.imwrite(str(p.with_suffix(".png")), np.round(x * 255).astype(np.uint8))
-    and p.with_suffix(".png"),
-    "12-bit in 16-bit png": lambda p, x: _png16(p.with_suffix(".png"), np.round(x * 4095)),
-    "16-bit tif": lambda p, x: _geotiff(p.with_suffix(".tif"), np.round(x * 65535).astype(np.uint16)),
-    "float32 tif, offset and scale": lambda p, x: _geotiff(p.with_suffix(".tif"),
-                                                           (1234.5 + 37.25 * x).astype(np.float32)),
-}
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +22,7 @@ def pair():
 
 def test_every_bit_depth_and_unit_gives_the_same_changes(tmp_path, pair):
     masks = {}
-    for name, write in FORMATS.items():
+    for name, write in BIT_DEPTHS.items():
         d = tmp_path / name.replace(" ", "_").replace(",", "")
         d.mkdir()
         ref = write(d / "reference", np.clip(pair.reference, 0, 1))
@@ -68,17 +45,10 @@ def test_clipped_highlights_are_no_data_not_change(tmp_path):
     fifth of its pixels at 255 (bright fields; the new objects are dark on
     them).  They carry no evidence: no-data in the score, never change, their
     share in the summary."""
-    scene = (0.25 + 0.7 * ops.aerial_scene((400, 400), seed=33)).astype(np.float32)
-    bright = ops.synthesize_pair(SHAPE, motion="inplane", changes=6, noise=0.002, seed=32, gain=1.35,
-                                 interpolation="cubic", scene=scene)
-    saturation = np.percentile(bright.distorted, 80)  # radiance at which the capture's sensor saturates
-    assert (bright.distorted[bright.change_mask] < saturation).mean() > 0.95
     pair_dir = tmp_path / "pair"
-    write_pair(pair_dir, bright, fmt="npy")  # the truth
-    ref = pair_dir / "reference.png"
-    dist = pair_dir / "distorted.png"
-    cv2.imwrite(str(ref), np.round(np.clip(bright.reference / saturation, 0, 1) * 255).astype(np.uint8))
-    cv2.imwrite(str(dist), np.round(np.clip(bright.distorted / saturation, 0, 1) * 255).astype(np.uint8))
+    bright, ref, dist = clipped_pair(pair_dir, SHAPE)
+    saturation = np.percentile(bright.distorted, 80)
+    assert (bright.distorted[bright.change_mask] < saturation).mean() > 0.95
     result = detect(ref, dist, tmp_path / "o.zarr", config=DetectConfig(tile=128))
     assert 0.19 <= result.clipped_capture <= 0.21
     arrays, _ = read_store(tmp_path / "o.zarr")
