@@ -318,6 +318,10 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                      shape[1], len(grid), grid.tile, grid.halo, scheduler)
             run = _ingest(runner, group, run, plan, timings)
             slow_stage(runner, group, run, plan, timings)
+            plan = plan.for_rows(group["work/slow"][:])  # the halo the rows need, the slow part known
+            if plan.grid.halo != grid.halo:
+                log.info("halo %d px for the rows (the slow part found needs no more)", plan.grid.halo)
+            grid = plan.grid
             _register_tiles(runner, group, run, plan, resume, timings)
             fused, hist, gains, agree, resolve = _fuse_paths(runner, group, run, plan, timings)
             threshold, changed, components = _change_masks(runner, run, plan, fused, hist, timings)

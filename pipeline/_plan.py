@@ -146,12 +146,14 @@ def default_tile(shape):
     return 1024 if min(shape) >= 4 * 1024 else 512
 
 
-def default_overlap(params, camera, shape):
+def default_overlap(params, camera, shape, *, slow_reach=None):
     """Halo (px) that holds every displacement the wide search allows anywhere in
     the image, plus the row neighbourhood: the extreme poses of the search box
-    are applied to the image corners."""
+    are applied to the image corners.  ``slow_reach`` (deg) replaces the slow
+    axes' search range: the largest slow rotation actually found."""
     axes = params.axes + params.slow_axes
-    search = np.asarray(params.search + (params.slow_search,) * len(params.slow_axes))
+    slow = params.slow_search if slow_reach is None else float(slow_reach)
+    search = np.asarray(params.search + (slow,) * len(params.slow_axes))
     corners = np.array([[0, 0, 1], [shape[1] - 1, 0, 1], [0, shape[0] - 1, 1], [shape[1] - 1, shape[0] - 1, 1.0]]).T
     signs = np.array(np.meshgrid(*[[-1.0, 1.0]] * len(axes), indexing="ij")).reshape(len(axes), -1).T
     hom = ops.pose_homographies(signs * search, camera, axes=axes, inverse=True)
@@ -198,6 +200,8 @@ class _Plan:
     grid: tiles.TileGrid
     blocks: tiles.TileGrid
     key: str
+    reach: int  # px: the halo of the whole search, slow axes included
+    halo_given: bool  # the user chose the halo (--overlap)
 
     @property
     def shape(self):
@@ -205,10 +209,24 @@ class _Plan:
 
     @property
     def margin(self):
-        """Pixels of reference ingested around the capture: the halo when the
-        reference is resampled onto the capture grid (it may extend beyond the
-        capture), none when the two are compared pixel for pixel."""
-        return self.grid.halo if self.pairing.mode == "georeferenced" else 0
+        """Pixels of reference ingested around the capture: the reach of the
+        whole search when the reference is resampled onto the capture grid (it
+        may extend beyond the capture), none when the two are compared pixel
+        for pixel."""
+        return self.reach if self.pairing.mode == "georeferenced" else 0
+
+    def for_rows(self, slow):
+        """This plan with the tiles' halo the rows need once the slow part is
+        known (``slow``: rx, ry per row in degrees, NaN without one): the
+        search's reach with the slow axes' range replaced by the largest slow
+        rotation found (none: the in-plane reach alone).  A halo chosen by the
+        user stays."""
+        if self.halo_given or not self.params.slow_axes:
+            return self
+        found = np.abs(np.asarray(slow, dtype=np.float64)[:, :2])
+        reach = float(np.nanmax(found)) if np.isfinite(found).any() else 0.0
+        halo = min(self.reach, default_overlap(self.params, self.camera, self.shape, slow_reach=reach))
+        return dataclasses.replace(self, grid=tiles.TileGrid(self.shape, self.grid.tile, halo))
 
     @property
     def reference_blocks(self):
@@ -231,6 +249,7 @@ def _plan(references, distorted, output, config):
     shape = dist_info.shape
     camera = ops.Camera.for_shape(shape, focal=config.focal)
     params = config.registration.resolved(camera)
+    config_overlap = config.overlap
     halo = config.overlap if config.overlap is not None else default_overlap(params, camera, shape)
     tile = config.tile or default_tile(shape)
     side = max(max(shape), 32)  # one tile of this side holds the image; a halo this wide reaches across it
@@ -246,4 +265,4 @@ def _plan(references, distorted, output, config):
     # what runs, 'auto' resolved: the same run keys the same whichever way it was asked for
     config = dataclasses.replace(config, registration=params, tile=grid.tile, overlap=grid.halo)
     return _Plan(pairing, ref_infos, dist_info, Path(output), config, camera, params, grid, _block_grid(grid),
-                 _run_key(ref_infos, dist_info, config, grid))
+                 _run_key(ref_infos, dist_info, config, grid), grid.halo, config_overlap is not None)

@@ -64,3 +64,22 @@ def test_an_in_plane_capture_has_no_slow_path(tmp_path, geotiff_pair_files):
 @pytest.mark.parametrize("shape,factor", [((256, 300), 1), ((1024, 1100), 2), ((2048, 2048), 4), ((8192, 9000), 16)])
 def test_overview_factor(shape, factor):
     assert overview_factor(shape) == factor
+
+
+def test_the_tiles_halo_follows_the_slow_part_found(small_pair_files, tmp_path):
+    """The store's reference margin covers the whole search (slow axes
+    included: it is ingested before the slow part is known); the tiles then
+    read only the halo the rows need: the in-plane reach without a slow part,
+    more with one, the reach of the whole search at most, and a halo the user
+    chose as it is."""
+    from rsmb.pipeline._plan import _plan
+
+    _, ref, dist = small_pair_files
+    plan = _plan([str(ref)], str(dist), str(tmp_path / "o.zarr"), DetectConfig())
+    height = plan.shape[0]
+    none = plan.for_rows(np.full((height, 3), np.nan))
+    some = plan.for_rows(np.column_stack([np.zeros(height), np.linspace(-1.0, 1.0, height), np.zeros(height)]))
+    assert none.grid.halo < some.grid.halo < plan.grid.halo == plan.reach
+    assert none.grid.tile == plan.grid.tile and none.key == plan.key and none.margin == plan.margin
+    given = _plan([str(ref)], str(dist), str(tmp_path / "o.zarr"), DetectConfig(overlap=40))
+    assert given.for_rows(np.full((height, 3), np.nan)).grid.halo == 40
