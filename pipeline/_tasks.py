@@ -5,6 +5,7 @@ and masks run per block of tiles (see ``pipeline._plan._block_grid``), a
 arguments, so any dask scheduler (threads, processes, distributed) can run
 them."""
 
+import dataclasses
 import functools
 import time
 from dataclasses import dataclass
@@ -195,17 +196,23 @@ def register_task(store, tile, camera, params, changes, prior=None):
 
 
 def _depth_layers(result, reference, capture, camera, tile, params, changes):
-    """:func:`ops.depth_layers` of one tile with the change threshold of the
-    tile's own residuals (the mosaic's is not known yet), or the registration
-    as it is when ``changes.layers`` is off."""
+    """The depth-layer step of one tile with the change threshold of the tile's
+    own residuals (the mosaic's is not known yet): a dense relative-depth map
+    of the residual (:func:`ops.depth_map`), then every candidate change left
+    tested as a depth layer (:func:`ops.depth_layers`); the registration as it
+    is when ``changes.layers`` is off."""
     if not changes.layers:
         return ops.LayerResult(np.zeros(result.valid.shape, bool), result.registered, result.chi)
     residual = np.where(result.valid, capture - result.registered, 0.0)
     hist = ops.score_histogram(residual, np.abs(result.chi), result.valid)
-    return ops.depth_layers(result, reference, capture, camera=camera,
-                            threshold=ops.change_threshold(hist, params=changes),
-                            reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
-                            lambda_chi=params.lambda_chi)
+    threshold = ops.change_threshold(hist, params=changes)
+    windows = dict(reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
+                   lambda_chi=params.lambda_chi)
+    dense = ops.depth_map(result, reference, capture, camera=camera, threshold=threshold, **windows)
+    layered = dataclasses.replace(result, registered=dense.registered, chi=dense.chi)
+    out = ops.depth_layers(layered, reference, capture, camera=camera, threshold=threshold, **windows)
+    out.parallax |= dense.explained
+    return out
 
 
 def _layer_table(components, tile):
