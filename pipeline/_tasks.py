@@ -197,10 +197,10 @@ def register_task(store, tile, camera, params, changes, prior=None):
 
 def _depth_layers(result, reference, capture, camera, tile, params, changes):
     """The depth-layer step of one tile with the change threshold of the tile's
-    own residuals (the mosaic's is not known yet): a dense relative-depth map
-    of the residual (:func:`ops.depth_map`), then every candidate change left
-    tested as a depth layer (:func:`ops.depth_layers`); the registration as it
-    is when ``changes.layers`` is off."""
+    own residuals (the mosaic's is not known yet): every candidate change
+    tested as a depth layer (:func:`ops.depth_layers`), then a dense
+    relative-depth map of what residual is left (:func:`ops.depth_map`); the
+    registration as it is when ``changes.layers`` is off."""
     if not changes.layers:
         return ops.LayerResult(np.zeros(result.valid.shape, bool), result.registered, result.chi)
     residual = np.where(result.valid, capture - result.registered, 0.0)
@@ -208,9 +208,10 @@ def _depth_layers(result, reference, capture, camera, tile, params, changes):
     threshold = ops.change_threshold(hist, params=changes)
     windows = dict(reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
                    lambda_chi=params.lambda_chi)
-    dense = ops.depth_map(result, reference, capture, camera=camera, threshold=threshold, **windows)
-    layered = dataclasses.replace(result, registered=dense.registered, chi=dense.chi)
-    out = ops.depth_layers(layered, reference, capture, camera=camera, threshold=threshold, **windows)
+    out = ops.depth_layers(result, reference, capture, camera=camera, threshold=threshold, **windows)
+    layered = dataclasses.replace(result, registered=out.registered, chi=out.chi)
+    dense = ops.depth_map(layered, reference, capture, camera=camera, threshold=threshold, **windows)
+    out.registered, out.chi = dense.registered, dense.chi
     out.parallax |= dense.explained
     return out
 
