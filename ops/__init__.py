@@ -26,6 +26,7 @@ from ._changes import (
 from ._errors import InputError, ParameterError, RSMBError, RunError, SolverError
 from ._forward import CameraPath, RenderResult, render
 from ._intensity import IntensityScale, intensity_scale
+from ._depthmap import DepthMapParams, DepthMapResult, depth_map
 from ._layers import LayerParams, LayerResult, depth_layers
 from ._metrics import ConfusionCounts, confusion, trajectory_rmse
 from ._oracle import ExactRowSolution, huber_objective, optimal_chi, row_objective, solve_row_exact
@@ -40,7 +41,7 @@ from ._threshold import kapur_threshold, kapur_threshold_histogram
 
 #: Version of the kernels' results: raised whenever a change to ops alters what
 #: a run computes, so that ``--resume`` never mixes tiles of two versions.
-KERNEL_VERSION = 3
+KERNEL_VERSION = 4
 
 __all__ = [
     "KERNEL_VERSION",
@@ -63,6 +64,9 @@ __all__ = [
     "LayerParams",
     "LayerResult",
     "depth_layers",
+    "DepthMapParams",
+    "DepthMapResult",
+    "depth_map",
     "Registration",
     "register",
     "SlowPath",

@@ -5,6 +5,7 @@ and masks run per block of tiles (see ``pipeline._plan._block_grid``), a
 arguments, so any dask scheduler (threads, processes, distributed) can run
 them."""
 
+import dataclasses
 import functools
 import time
 from dataclasses import dataclass
@@ -195,17 +196,24 @@ def register_task(store, tile, camera, params, changes, prior=None):
 
 
 def _depth_layers(result, reference, capture, camera, tile, params, changes):
-    """:func:`ops.depth_layers` of one tile with the change threshold of the
-    tile's own residuals (the mosaic's is not known yet), or the registration
-    as it is when ``changes.layers`` is off."""
+    """The depth-layer step of one tile with the change threshold of the tile's
+    own residuals (the mosaic's is not known yet): every candidate change
+    tested as a depth layer (:func:`ops.depth_layers`), then a dense
+    relative-depth map of what residual is left (:func:`ops.depth_map`); the
+    registration as it is when ``changes.layers`` is off."""
     if not changes.layers:
         return ops.LayerResult(np.zeros(result.valid.shape, bool), result.registered, result.chi)
     residual = np.where(result.valid, capture - result.registered, 0.0)
     hist = ops.score_histogram(residual, np.abs(result.chi), result.valid)
-    return ops.depth_layers(result, reference, capture, camera=camera,
-                            threshold=ops.change_threshold(hist, params=changes),
-                            reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
-                            lambda_chi=params.lambda_chi)
+    threshold = ops.change_threshold(hist, params=changes)
+    windows = dict(reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
+                   lambda_chi=params.lambda_chi)
+    out = ops.depth_layers(result, reference, capture, camera=camera, threshold=threshold, **windows)
+    layered = dataclasses.replace(result, registered=out.registered, chi=out.chi)
+    dense = ops.depth_map(layered, reference, capture, camera=camera, threshold=threshold, **windows)
+    out.registered, out.chi = dense.registered, dense.chi
+    out.parallax |= dense.explained
+    return out
 
 
 def _layer_table(components, tile):

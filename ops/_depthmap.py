@@ -1,0 +1,267 @@
+"""A dense relative-depth map for the whole residual (METHOD.md section 3,
+item 8, extended from change components to every pixel).
+
+The registration fits each row's weights to one plane.  A ground-level scene
+has depth everywhere: a nearer tree moves more under the camera's
+translations than the plane the row settled on, a farther one less, and the
+residual keeps their edges.  With the rows' weights fixed, the reference is
+warped and blurred again at a set of relative inverse depths ``q`` (the
+translations ``tx``, ``ty`` and the scale ``s`` of every weighted pose
+multiplied by ``q``, rotations as they are; ``q = 1`` is the registered plane,
+``q = 0`` infinitely far), the per-pixel residual, truncated at the change
+threshold, is averaged over a window, and each pixel takes the depth of the
+lowest window cost:
+
+- only where that cost is clearly lower than the registered plane's (at most
+  :attr:`DepthMapParams.gain` times it): ties and noise keep the plane;
+- only where the plane leaves unexplained structure: pixels with no residual
+  above half the threshold within the window keep the plane (flat, well
+  registered scenes cost nothing).
+
+The output is still the model's: at every pixel the reference warped and
+blurred by the row's estimated path at one depth, times the row's gain.  New
+content (a pasted change) is explained at no depth and stays in ``chi``.
+"""
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+
+from ._camera import full_poses
+from ._oracle import optimal_chi
+from ._warp import _inverse_map
+
+__all__ = ["DepthMapParams", "DepthMapResult", "depth_map"]
+
+
+@dataclass(frozen=True)
+class DepthMapParams:
+    """Tuning of :func:`depth_map`.
+
+    Attributes
+    ----------
+    max_inverse_depth : float
+        Largest relative inverse depth swept (3: a third of the registered
+        plane's distance); the sweep starts at 0 (infinitely far).
+    max_depths : int
+        Most depths rendered; the step is the one that moves the largest
+        translation of the window by one pixel, coarsened to this count.
+    window : int
+        Side of the square window the truncated residual is averaged over, px.
+    gain : float
+        A depth replaces the plane where its window cost is at most this
+        fraction of the plane's.
+    """
+
+    max_inverse_depth: float = 3.0
+    max_depths: int = 64
+    window: int = 7
+    gain: float = 0.7
+
+
+@dataclass
+class DepthMapResult:
+    """Result of :func:`depth_map`.
+
+    Attributes
+    ----------
+    registered, chi : ndarray, shape (H, W), float32
+        The registration's, re-rendered at their depth where one was taken.
+    inverse_depth : ndarray, shape (H, W), float32
+        Relative inverse depth taken per pixel, 1 (the registered plane) elsewhere.
+    explained : ndarray of bool, shape (H, W)
+        Pixels above the threshold on the plane that fall below it at their depth.
+    depths : int
+        Depths rendered (0 when the residual had no structure to explain).
+    """
+
+    registered: np.ndarray
+    chi: np.ndarray
+    inverse_depth: np.ndarray
+    explained: np.ndarray
+    depths: int = 0
+
+
+def depth_map(registration, reference, distorted, *, camera, threshold, reference_origin_yx=(0, 0),
+              distorted_origin_yx=(0, 0), lambda_chi=0.02, params=None):
+    """Re-render a registration per pixel at the depth that explains it best.
+
+    Parameters
+    ----------
+    registration : Registration
+        Of ``distorted`` against ``reference`` (its row weights are re-used).
+    reference : ndarray, shape (Hr, Wr), float32
+        The reference window the registration used (NaN for no-data).
+    distorted : ndarray, shape (H, W), float32
+        The capture window (the values the registration fitted).
+    camera : Camera
+        Intrinsics of the whole image.
+    threshold : float
+        The change threshold (intensity units): residuals are truncated at it.
+    reference_origin_yx, distorted_origin_yx : tuple of int
+        The windows' positions in the whole image.
+    lambda_chi : float
+        eq. 13's weight of ``||chi||_1``, for the change term of re-rendered pixels.
+    params : DepthMapParams, optional
+
+    Returns
+    -------
+    DepthMapResult
+    """
+    params = params or DepthMapParams()
+    base = registration.registered
+    g = np.asarray(distorted, np.float32)
+    tau = float(threshold)
+    out = DepthMapResult(base.copy(), registration.chi.copy(), np.ones(g.shape, np.float32),
+                         np.zeros(g.shape, bool))
+    valid = registration.valid & np.isfinite(base)
+    residual = np.where(valid, np.abs(g - base), 0.0).astype(np.float32)
+    active = _active(residual, valid, tau, params.window)
+    if not active.any() or not tau > 0:
+        return out
+    rows = _RowPoses.of(registration, g.shape[0])
+    step = 1.0 / max(rows.largest_translation(), 1.0)
+    count = int(min(params.max_depths, math.floor(params.max_inverse_depth / step) + 1))
+    qs = np.linspace(0.0, params.max_inverse_depth, max(count, 2))
+    render_mask = cv2.dilate(active.astype(np.uint8), np.ones((params.window, params.window), np.uint8)) > 0
+    cost_plane = _window_cost(np.where(valid, residual, tau), tau, params.window)
+    best = np.full(g.shape, np.inf, np.float32)
+    chosen = np.full(g.shape, np.nan, np.float32)
+    depth = np.ones(g.shape, np.float32)
+    geometry = _geometry(camera, reference_origin_yx, distorted_origin_yx)
+    ref = np.ascontiguousarray(reference, np.float32)
+    for q in qs:
+        rendered = rows.render(ref, geometry, float(q), render_mask)
+        err = np.where(np.isfinite(rendered), np.abs(g - rendered), tau)
+        cost = _window_cost(err, tau, params.window)
+        better = active & (cost < best) & np.isfinite(rendered)
+        best[better] = cost[better]
+        chosen[better] = rendered[better]
+        depth[better] = q
+    take = active & np.isfinite(chosen) & (best <= params.gain * cost_plane)
+    out.registered[take] = chosen[take]
+    out.inverse_depth[take] = depth[take]
+    r = g[take] - chosen[take]
+    out.chi[take] = optimal_chi(r, lambda_chi=lambda_chi)
+    out.explained = take & (residual > tau) & (np.abs(g - out.registered) <= tau)
+    out.depths = len(qs)
+    return out
+
+
+def _active(residual, valid, tau, window):
+    """Pixels whose window holds residual above half the threshold: where the
+    plane leaves structure unexplained."""
+    seed = (valid & (residual > 0.5 * tau)).astype(np.uint8)
+    return (cv2.dilate(seed, np.ones((window, window), np.uint8)) > 0) & valid
+
+
+def _window_cost(err, tau, window):
+    """Mean over a ``window`` square of the residual truncated at ``tau``."""
+    return cv2.boxFilter(np.minimum(err, tau).astype(np.float32), -1, (window, window),
+                         borderType=cv2.BORDER_REPLICATE)
+
+
+def _geometry(camera, reference_origin_yx, distorted_origin_yx):
+    """(focal, cx, cy in the reference window, row and column offset of the
+    capture window in it)."""
+    return (float(camera.focal), float(camera.center_xy[0] - reference_origin_yx[1]),
+            float(camera.center_xy[1] - reference_origin_yx[0]),
+            float(distorted_origin_yx[0] - reference_origin_yx[0]), float(distorted_origin_yx[1] - reference_origin_yx[1]))
+
+
+@dataclass
+class _RowPoses:
+    """Every row's weighted poses, flattened: row ``i`` owns ``poses6[offsets[i]:
+    offsets[i + 1]]`` (full poses, the slow rotations added) and their weights."""
+
+    poses6: np.ndarray
+    weights: np.ndarray
+    offsets: np.ndarray
+    gain: np.ndarray
+
+    @classmethod
+    def of(cls, registration, height):
+        some = next((p for p, _ in registration.row_weights.values()), np.zeros((0, 1)))
+        axes = registration.axes[:some.shape[1]]
+        poses, weights, offsets = [], [], [0]
+        for row in range(height):
+            p, w = registration.row_weights.get(row, (np.zeros((0, len(axes))), np.zeros(0)))
+            p6 = full_poses(p, axes)
+            if registration.slow is not None and len(w):
+                p6 = p6 + registration.slow.pose6(row)  # rotations only: not scaled by depth
+            poses.append(p6)
+            weights.append(np.asarray(w, np.float64))
+            offsets.append(offsets[-1] + len(w))
+        gain = registration.column_gain
+        return cls(np.concatenate(poses) if poses else np.zeros((0, 6)), np.concatenate(weights),
+                   np.asarray(offsets, np.int64), np.ones(1) if gain is None else np.asarray(gain, np.float64))
+
+    def largest_translation(self):
+        """Largest displacement (px) a weighted pose's translation gives a pixel."""
+        if not len(self.poses6):
+            return 0.0
+        return float(np.max(np.hypot(self.poses6[:, 0], self.poses6[:, 1])))
+
+    def render(self, ref, geometry, q, mask):
+        out = np.full(mask.shape, np.nan, np.float32)
+        _render_depth(ref, self.poses6, self.weights, self.offsets, self.gain, *geometry, q,
+                      mask.astype(np.uint8), out)
+        return out
+
+
+@numba.njit(nogil=True, cache=True)
+def _render_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, q, mask, out):
+    """``out[i, j]`` = row ``i``'s weighted poses at inverse depth ``q``
+    (translations and scale times ``q``) applied to ``ref``, times the column
+    gain, where ``mask``; NaN where a pose leaves valid reference data."""
+    height, width = out.shape
+    hr, wr = ref.shape
+    per_column = gain.shape[0] == width
+    for i in range(height):
+        s0, s1 = offsets[i], offsets[i + 1]
+        if s0 == s1:
+            continue
+        y = i + dy
+        count = s1 - s0
+        maps = np.empty((count, 9))
+        shifts = np.empty((count, 3))
+        for k in range(count):
+            p = poses6[s0 + k].copy()
+            p[0] *= q
+            p[1] *= q
+            p[2] *= q
+            m, tx, ty, sc = _inverse_map(p, focal, cx, cy)
+            maps[k] = m
+            shifts[k, 0], shifts[k, 1], shifts[k, 2] = tx, ty, sc
+        for j in range(width):
+            if mask[i, j] == 0:
+                continue
+            acc = 0.0
+            ok = True
+            for k in range(count):
+                m = maps[k]
+                tx, ty, sc = shifts[k, 0], shifts[k, 1], shifts[k, 2]
+                ux = (j + dx - cx - tx) / sc
+                uy = (y - cy - ty) / sc
+                h2 = m[6] * ux + m[7] * uy + m[8]
+                u = (m[0] * ux + m[1] * uy + m[2]) / h2 + cx
+                v = (m[3] * ux + m[4] * uy + m[5]) / h2 + cy
+                if not (u >= 0.0 and v >= 0.0 and u <= wr - 1 and v <= hr - 1):
+                    ok = False
+                    break
+                iu = min(int(u), wr - 2)
+                iv = min(int(v), hr - 2)
+                fu = u - iu
+                fv = v - iv
+                top = ref[iv, iu] * (1.0 - fu) + ref[iv, iu + 1] * fu
+                bot = ref[iv + 1, iu] * (1.0 - fu) + ref[iv + 1, iu + 1] * fu
+                val = top * (1.0 - fv) + bot * fv
+                if math.isnan(val):
+                    ok = False
+                    break
+                acc += weights[s0 + k] * val
+            if ok:
+                out[i, j] = acc * (gain[j] if per_column else 1.0)

@@ -1,0 +1,112 @@
+"""The dense depth map: with the rows' weights fixed, every pixel takes the
+relative depth whose re-rendering explains its window clearly better than the
+registered plane (METHOD.md section 3, item 8, extended to the whole residual).
+Raised structures are explained at about their depth; new objects are
+explained at none and are still detected."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from rsmb import ops
+from rsmb.ops._depthmap import _geometry, _RowPoses
+
+SHAPE, EXPOSURE = (384, 384), 20.0
+
+
+def _path(tx=(15.0, 19.0), ty=(3.0, 6.0)):
+    duration = SHAPE[0] + EXPOSURE + 1.0
+    t = np.linspace(0.0, duration, 32)
+    poses = np.zeros((t.size, 6))
+    poses[:, 0] = np.linspace(*tx, t.size)
+    poses[:, 1] = np.linspace(*ty, t.size)
+    return ops.CameraPath(t, poses)
+
+
+def _run(pair):
+    reg = ops.register(pair.reference, pair.distorted, camera=pair.camera)
+    plain = ops.detect_changes(reg, pair.distorted, camera=pair.camera)
+    dense = ops.depth_map(reg, pair.reference, pair.distorted, camera=pair.camera, threshold=plain.threshold)
+    return reg, plain, dense
+
+
+def _rmse(registered, distorted, mask):
+    return float(np.sqrt(np.mean((registered[mask] - distorted[mask]) ** 2)))
+
+
+@pytest.fixture(scope="module")
+def raised():
+    """Four roofs at relative depths 0.4 to 0.8 under a translation of 15 to
+    19 px, and five new objects: rendered with the independent renderer."""
+    pair = ops.synthesize_pair(SHAPE, path=_path(), exposure=EXPOSURE, changes=5, noise=0.002, seed=41,
+                               interpolation="cubic", structures=4, depths=(0.4, 0.8))
+    return (pair, *_run(pair))
+
+
+def _explainable(pair, reg, threshold):
+    """Pixels of the roofs (not the ground they hid) that the rows' weights
+    explain at one of the true depths: what the depth map can reach."""
+    rows = _RowPoses.of(reg, pair.distorted.shape[0])
+    geometry = _geometry(pair.camera, (0, 0), (0, 0))
+    best = np.full(pair.distorted.shape, np.inf)
+    for depth in pair.depths:
+        rendered = rows.render(np.ascontiguousarray(pair.reference, np.float32), geometry, 1.0 / depth,
+                               np.ones(pair.distorted.shape, bool))
+        best = np.fmin(best, np.abs(rendered - pair.distorted))
+    ok = reg.valid & np.isfinite(reg.registered)
+    return pair.parallax_mask & ~pair.change_mask & ok & (best < threshold)
+
+
+def test_raised_structures_are_explained_at_a_depth(raised):
+    pair, reg, plain, dense = raised
+    reachable = _explainable(pair, reg, plain.threshold)
+    assert reachable.sum() > 2000
+    before, after = [np.abs(r - pair.distorted)[reachable] for r in (reg.registered, dense.registered)]
+    assert np.mean(before <= plain.threshold) < 0.5  # on the plane, the roofs are mostly residual
+    assert np.mean(after <= plain.threshold) >= 0.7, np.mean(after <= plain.threshold)
+    assert np.sqrt(np.mean(after ** 2)) < 0.6 * np.sqrt(np.mean(before ** 2))
+    # the roofs are nearer than the ground: where a depth was taken on them, it is nearer
+    taken = reachable & (dense.inverse_depth != 1.0)
+    assert np.mean(dense.inverse_depth[taken] > 1.0) > 0.9
+    # the ground off the roofs keeps its plane
+    ok = reg.valid & np.isfinite(reg.registered)
+    ground = ok & ~ndimage.binary_dilation(pair.parallax_mask | pair.change_mask, iterations=8)
+    assert np.mean(dense.inverse_depth[ground] != 1.0) < 0.02
+
+
+def test_new_objects_are_explained_at_no_depth(raised):
+    pair, reg, plain, dense = raised
+    assert not (dense.explained & pair.change_mask).any()
+    reg.registered[:], reg.chi[:] = dense.registered, dense.chi
+    after = ops.detect_changes(reg, pair.distorted, camera=pair.camera).mask
+    roofs = pair.parallax_mask & ~pair.change_mask
+    # the changes alone (roof pixels not counted): as well detected as on the plane
+    before_counts = ops.confusion(plain.mask & ~roofs, pair.change_mask)
+    counts = ops.confusion(after & ~roofs, pair.change_mask)
+    assert counts.recall >= before_counts.recall - 0.01 and counts.precision >= before_counts.precision - 0.01, \
+        (before_counts.as_dict(), counts.as_dict())
+    assert counts.recall >= 0.9
+    # and the roofs are no longer change
+    assert (after & roofs).sum() < 0.5 * (plain.mask & roofs).sum()
+
+
+def test_without_parallax_the_plane_stays():
+    pair = ops.synthesize_pair(SHAPE, motion="inplane", exposure=EXPOSURE, changes=6, noise=0.002, seed=42,
+                               interpolation="cubic")
+    reg, plain, dense = _run(pair)
+    ok = reg.valid & np.isfinite(reg.registered)
+    assert np.mean(dense.inverse_depth[ok] != 1.0) < 0.01
+    assert not (dense.explained & pair.change_mask).any()
+    reg.registered[:], reg.chi[:] = dense.registered, dense.chi
+    after = ops.detect_changes(reg, pair.distorted, camera=pair.camera).mask
+    assert ops.confusion(after, pair.change_mask).f_measure >= ops.confusion(plain.mask, pair.change_mask).f_measure - 0.005
+
+
+def test_no_residual_no_work():
+    """A registration that explains every pixel renders no depth at all."""
+    pair = ops.synthesize_pair((96, 96), motion="inplane", exposure=8.0, changes=0, noise=0.0, seed=3,
+                               interpolation="cubic")
+    reg = ops.register(pair.reference, pair.distorted, camera=pair.camera)
+    dense = ops.depth_map(reg, pair.reference, pair.distorted, camera=pair.camera, threshold=1.0)
+    assert dense.depths == 0 and (dense.inverse_depth == 1.0).all()
+    np.testing.assert_array_equal(dense.registered, reg.registered)
