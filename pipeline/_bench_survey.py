@@ -5,11 +5,12 @@ aerial images, and a night's throughput against one large detect.
   procedural scene) is the ground and the reference; a 512 x 512 capture of a
   window of it (the forward model, pasted changes) is run against the
   reference as a larger mosaic, split over two files it straddles, resampled
-  to finer and coarser pixels, reprojected to EPSG:3857 and EPSG:4326, and
+  to finer (0.4 and 0.25 m) and coarser (0.7 m) pixels, reprojected to EPSG:3857 and EPSG:4326, and
   partly covered; its F-measure is compared with two hand-cut same-grid pairs:
   the scene cut at the capture's grid at full resolution, and the user's own
-  rasterio cut of that case's reference (cubic, ``rio warp --like``; a
-  coarser reference carries less than the full-resolution cut).
+  rasterio cuts of that case's reference (``rio warp --like``, nearest and
+  the resampling rsmb chose; a coarser reference carries less than the
+  full-resolution cut).
   A reference elsewhere and a capture 5 km away must exit 2.
 - Night: 8 captures of 1024 x 1024 from a 3072 x 3072 scene through ``rsmb
   survey`` in a subprocess (command start to summary written), beside ``rsmb
@@ -39,14 +40,15 @@ PAIRING_CASES = {
     "larger mosaic": {},
     "two files, straddled": {"split": 2},
     "finer pixels (0.4 m)": {"pixel": 0.4},
+    "finer pixels (0.25 m)": {"pixel": 0.25},
     "coarser pixels (0.7 m)": {"pixel": 0.7},
     "EPSG:3857": {"crs": "EPSG:3857"},
     "EPSG:4326": {"crs": "EPSG:4326"},
 }
 
 
-#: How the user's own cut of each case's reference is resampled (``rio warp --resampling``).
-USER_RESAMPLING = "cubic"
+#: The resampling of ``rio warp`` when none is given: the first of the user's own cuts.
+USER_DEFAULT = "nearest"
 
 
 def _echo(text):
@@ -83,11 +85,11 @@ def _rsmb(*args):
     return subprocess.run([sys.executable, "-m", "rsmb", *map(str, args)], capture_output=True, text=True)
 
 
-def _user_cut(references, capture, target, resampling=USER_RESAMPLING):
+def _user_cut(references, capture, target, resampling=USER_DEFAULT):
     """What a user cuts by hand from ``references`` for ``capture``: each file
     reprojected onto the capture's grid with rasterio (``rio warp --like
-    capture.tif --resampling cubic``), the first file with data winning, in the
-    references' dtype, 0 = nodata."""
+    capture.tif --resampling RESAMPLING``), the first file with data winning, in
+    the references' dtype, 0 = nodata."""
     import rasterio
     from rasterio.warp import Resampling, reproject
 
@@ -118,31 +120,36 @@ def _metric_pixel(reference, capture):
 
 
 def _pairing_case(work, name, references, capture, truth, base, valid_from_store=False):
-    """F of rsmb on the reference set, of the user's rasterio cut of the same set,
-    and the deltas against both and against the full-resolution hand cut ``base``
-    (a callable of the valid pixels, or None for all)."""
+    """F of rsmb on the reference set, of the user's rasterio cuts of the same set
+    (``rio warp``'s default resampling and the one rsmb chose), and rsmb's deltas
+    against them and against the full-resolution hand cut (``base``: F of a
+    callable of the valid pixels, None for all)."""
     slug = name.replace(" ", "_").replace(":", "")
     result = detect(references, capture, work / f"{slug}.zarr")
     valid = np.isfinite(tiles.open_result_store(work / f"{slug}.zarr")["registered"][:]) if valid_from_store else None
     counts = _f(work / f"{slug}.zarr", truth, valid)
-    cut = _user_cut(references, capture, work / f"{slug}_user_cut.tif")
-    detect(cut, capture, work / f"{slug}_user_cut.zarr")
-    user = _f(work / f"{slug}_user_cut.zarr", truth, valid).f_measure
-    full = base(valid)
     grid = tiles.RasterGrid.from_path(capture)
-    how = sorted({tiles.resampling_for(tiles.RasterGrid.from_path(r), grid) for r in references})
+    how = list(dict.fromkeys(tiles.resampling_for(tiles.RasterGrid.from_path(r), grid) for r in references))
+    users = {}
+    for resampling in dict.fromkeys([USER_DEFAULT] + [h for h in how if h != "copy"]):
+        cut = _user_cut(references, capture, work / f"{slug}_user_{resampling}.tif", resampling)
+        detect(cut, capture, work / f"{slug}_user_{resampling}.zarr")
+        users[resampling] = _f(work / f"{slug}_user_{resampling}.zarr", truth, valid).f_measure
+    full = base(valid)
     return {"f_measure": counts.f_measure, "precision": counts.precision, "recall": counts.recall,
-            "full_cut_f": full, "delta": counts.f_measure - full, "user_cut_f": user,
-            "delta_user_cut": counts.f_measure - user, "inherent": user - full,
+            "full_cut_f": full, "delta": counts.f_measure - full, "user_cut_f": users,
+            "delta_user_cut": {k: counts.f_measure - v for k, v in users.items()},
             "coverage": result.reference_coverage, "resampling": ",".join(how),
             "pixel_m": _metric_pixel(references[0], capture)}
 
 
 def bench_pairing(data, workdir, *, size=512):
-    """Georeferenced pairing cases against two hand-cut pairs: the full-resolution
-    cut (the scene at the capture's grid) and the user's rasterio cut of the same
-    case's reference (``rio warp --like``, cubic): their difference is what the
-    reference set carries, rsmb's delta to the latter what its pairing costs."""
+    """Georeferenced pairing cases against two kinds of hand-cut pair: the
+    full-resolution cut (the scene at the capture's grid) and the user's rasterio
+    cuts of the same case's reference (``rio warp --like``, with its default
+    resampling, nearest, and with the resampling rsmb chose): their difference is
+    what the reference set carries, rsmb's delta to the latter what its pairing
+    costs."""
     work = Path(workdir, "pairing")
     scene, source = _scene(data, (1024, 1024))
     spec = CaptureSpec((256, 300), (size, size), seed=7, changes=6, exposure=32.0)
@@ -158,7 +165,7 @@ def bench_pairing(data, workdir, *, size=512):
             full[key] = _f(work / "cut.zarr", truth, valid).f_measure
         return full[key]
 
-    out = {"scene": source, "hand_cut_f": base(None), "user_resampling": USER_RESAMPLING, "cases": {}}
+    out = {"scene": source, "hand_cut_f": base(None), "cases": {}}
     for name, kw in PAIRING_CASES.items():
         references = write_reference(work / name.replace(" ", "_"), scene, **kw)
         out["cases"][name] = _pairing_case(work, name, references, capture, truth, base)
@@ -172,13 +179,14 @@ def bench_pairing(data, workdir, *, size=512):
              "5 km apart": _rsmb("detect", cut.reference, moved, "-o", work / "y.zarr")}
     out["refused"] = {k: {"exit": p.returncode, "message": p.stderr.strip()} for k, p in codes.items()}
     _echo(f"survey pairing ({source}, {size} x {size} capture): F against the full-resolution hand cut "
-          f"(F {out['hand_cut_f']:.3f}) and against the user's own rasterio cut ({USER_RESAMPLING}) of the "
-          f"same reference")
+          f"(F {out['hand_cut_f']:.3f}) and against the user's own rasterio cuts of the same reference "
+          f"(rio warp --like capture.tif, {USER_DEFAULT} and the resampling rsmb chose)")
     for name, r in out["cases"].items():
         part = " on the covered part" if r["coverage"] < 1.0 else ""
-        _echo(f"  {name:24s} F {r['f_measure']:.3f} ({r['delta']:+.3f} vs full-res cut {r['full_cut_f']:.3f}, "
-              f"{r['delta_user_cut']:+.3f} vs user's cut {r['user_cut_f']:.3f}){part}; reference "
-              f"{r['pixel_m'][0]:.2f} x {r['pixel_m'][1]:.2f} m, {r['resampling']}, coverage {r['coverage']:.2f}")
+        users = ", ".join(f"{r['delta_user_cut'][k]:+.3f} vs {k} cut {v:.3f}" for k, v in r["user_cut_f"].items())
+        _echo(f"  {name:24s} F {r['f_measure']:.3f} ({r['delta']:+.3f} vs full-res cut {r['full_cut_f']:.3f}; "
+              f"{users}){part}; reference {r['pixel_m'][0]:.2f} x {r['pixel_m'][1]:.2f} m, rsmb "
+              f"{r['resampling']}, coverage {r['coverage']:.2f}")
     for name, r in out["refused"].items():
         _echo(f"  {name:24s} exit {r['exit']}: {r['message']}")
     return out

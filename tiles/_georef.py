@@ -41,13 +41,13 @@ _COVERAGE_SAMPLES = 1024
 #: Two grids whose origins differ by a whole number of pixels within this many
 #: pixels (and share CRS, pixel size and rotation) are the same grid.
 _ALIGN_TOL = 1e-6
-#: Radius of the resampling kernels in reference pixels (cubic: 2), widened by
+#: Radius of the resampling kernels in reference pixels (lanczos: 3), widened by
 #: the ratio of pixel sizes where the reference is finer: the reference pixels
 #: read around a window beyond those under it.
-_KERNEL_PAD = 2
+_KERNEL_PAD = 3
 #: A capture pixel that spans at least this many reference pixels along both of
 #: its axes is the mean of the reference pixels under it (``average``); any
-#: other pixel-size ratio is resampled with a cubic kernel.
+#: other pixel-size ratio is resampled with a Lanczos kernel.
 _AVERAGE_RATIO = 2.0
 
 PathOrGrid = Union[str, os.PathLike, "RasterGrid"]
@@ -281,15 +281,15 @@ def resampling_for(reference: RasterGrid, capture: RasterGrid) -> str:
         ``"copy"`` when the two are one grid (a whole-pixel offset apart);
         ``"average"`` when a capture pixel spans at least two reference pixels
         along both of its axes (the reference pixels under it are averaged);
-        ``"cubic"`` otherwise (a coarser reference, a similar pixel size, or finer
-        along one axis only).  Names of ``rasterio.enums.Resampling``.
+        ``"lanczos"`` otherwise (a coarser reference, a similar pixel size, or
+        finer along one axis only).  Names of ``rasterio.enums.Resampling``.
     """
     if _grid_offset(reference, capture) is not None:
         return "copy"
     steps = _pixel_steps(reference, capture)
     if all(math.isfinite(v) for v in steps) and min(steps) >= _AVERAGE_RATIO:
         return "average"
-    return "cubic"
+    return "lanczos"
 
 
 # ------------------------------------------------------------------ the window
@@ -328,10 +328,11 @@ def reference_window(
     (:func:`resampling_for`, the same for every window of a capture, so windows
     stitch seamlessly): where a capture pixel spans at least two reference pixels
     along both axes, the mean of the reference pixels under it (GDAL's
-    ``average``, what a coarser sensor integrates); otherwise cubic convolution
-    (GDAL's ``cubic``, Keys' kernel: exact on quadratic surfaces, where bilinear
-    interpolation would soften a coarser reference; where the reference is finer
-    along one axis GDAL widens the kernel along it).  Nodata pixels are left out
+    ``average``, what a coarser sensor integrates); otherwise a Lanczos kernel
+    (GDAL's ``lanczos``, windowed sinc of 3 lobes: detail near the reference's
+    sampling limit keeps most of its contrast, where bilinear interpolation would
+    soften a coarser reference; where the reference is finer along one axis GDAL
+    widens the kernel along it).  Nodata pixels are left out
     and the weights renormalised, so a capture pixel is valid when any reference
     pixel under its kernel is.  A reference on the capture's own grid (same CRS,
     pixel size and rotation, origin a whole number of pixels away) is copied, not
@@ -461,5 +462,5 @@ def _resample(src: np.ndarray, src_crs: str, src_affine, dst_crs: str, dst_affin
     dst = np.full(shape, np.nan, dtype=np.float32)
     reproject(source=src, destination=dst, src_transform=src_affine, src_crs=_crs(src_crs),
               src_nodata=np.nan, dst_transform=dst_affine, dst_crs=_crs(dst_crs),
-              dst_nodata=np.nan, resampling=Resampling["cubic" if resampling == "copy" else resampling])
+              dst_nodata=np.nan, resampling=Resampling["lanczos" if resampling == "copy" else resampling])
     return dst
