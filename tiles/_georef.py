@@ -332,11 +332,11 @@ def reference_window(
     (GDAL's ``lanczos``, windowed sinc of 3 lobes: detail near the reference's
     sampling limit keeps most of its contrast, where bilinear interpolation would
     soften a coarser reference; where the reference is finer along one axis GDAL
-    widens the kernel along it).  Nodata pixels are left out
-    and the weights renormalised, so a capture pixel is valid when any reference
-    pixel under its kernel is.  A reference on the capture's own grid (same CRS,
-    pixel size and rotation, origin a whole number of pixels away) is copied, not
-    resampled: the result is exact.
+    widens the kernel along it).  Nodata pixels are left out of the kernel and
+    its weights renormalised over the valid ones; a capture pixel is valid where
+    its centre lies on valid reference data.  A reference on the capture's own
+    grid (same CRS, pixel size and rotation, origin a whole number of pixels
+    away) is copied, not resampled: the result is exact.
 
     Only the reference pixels under the window (plus a few for the kernel) are
     read from each file; consecutive files on one grid are mosaicked before

@@ -222,6 +222,21 @@ def test_coarser_reference_keeps_the_contrast_of_fine_detail(files, grid):
     assert float(np.sqrt(np.mean((out - truth) ** 2))) < 0.06
 
 
+@pytest.mark.parametrize("pixel", [0.7, 0.4, 1.6])
+def test_a_nodata_edge_keeps_a_constant_reference_constant(files, grid, pixel):
+    # the kernel's weights are renormalised over the valid pixels (Lanczos has negative lobes: without it
+    # the last pixels before the edge would be off); the capture is valid up to the data's edge
+    shape = (int(REF_SHAPE[0] / pixel), int(REF_SHAPE[1] / pixel))
+    edge = int((CAP_OFFSET[1] + 80) / pixel)  # reference column of the edge: the capture's column ~80
+    constant = np.full(shape, 0.5, np.float32)
+    constant[:, edge:] = -1.0
+    path = _write(files["dir"] / f"edge{pixel}.tif", constant, UTM, _utm(0, 0, pixel), nodata=-1.0)
+    out = reference_window(path, grid, *_window(grid))
+    x = np.arange(CAP_SHAPE[1]) + 0.5 + CAP_OFFSET[1]  # capture pixel centres, metres from the origin
+    np.testing.assert_array_equal(np.isfinite(out), np.broadcast_to(x < edge * pixel, out.shape))
+    np.testing.assert_allclose(out[np.isfinite(out)], 0.5, atol=1e-6)
+
+
 @pytest.mark.parametrize("factor", [2, 4])
 def test_finer_reference_is_the_mean_of_the_pixels_under_each_capture_pixel(files, grid, factor):
     fine = np.random.default_rng(factor).random((REF_SHAPE[0] * factor, REF_SHAPE[1] * factor), np.float32)
