@@ -5,8 +5,12 @@ aerial images, and a night's throughput against one large detect.
   procedural scene) is the ground and the reference; a 512 x 512 capture of a
   window of it (the forward model, pasted changes) is run against the
   reference as a larger mosaic, split over two files it straddles, resampled
-  to finer and coarser pixels, reprojected to EPSG:3857 and EPSG:4326, and
-  partly covered; its F-measure is compared with the hand-cut same-grid pair.
+  to finer (0.4 and 0.25 m) and coarser (0.7 m) pixels, reprojected to EPSG:3857 and EPSG:4326, and
+  partly covered; its F-measure is compared with two hand-cut same-grid pairs:
+  the scene cut at the capture's grid at full resolution, and the user's own
+  rasterio cuts of that case's reference (``rio warp --like``, nearest and
+  the resampling rsmb chose; a coarser reference carries less than the
+  full-resolution cut).
   A reference elsewhere and a capture 5 km away must exit 2.
 - Night: 8 captures of 1024 x 1024 from a 3072 x 3072 scene through ``rsmb
   survey`` in a subprocess (command start to summary written), beside ``rsmb
@@ -36,10 +40,15 @@ PAIRING_CASES = {
     "larger mosaic": {},
     "two files, straddled": {"split": 2},
     "finer pixels (0.4 m)": {"pixel": 0.4},
+    "finer pixels (0.25 m)": {"pixel": 0.25},
     "coarser pixels (0.7 m)": {"pixel": 0.7},
     "EPSG:3857": {"crs": "EPSG:3857"},
     "EPSG:4326": {"crs": "EPSG:4326"},
 }
+
+
+#: The resampling of ``rio warp`` when none is given: the first of the user's own cuts.
+USER_DEFAULT = "nearest"
 
 
 def _echo(text):
@@ -61,53 +70,123 @@ def _scene(data, shape, seed=5):
     return scene, f"aerial/{images[0].name}"
 
 
-def _f(store, truth, covered_only=False):
-    if not covered_only:
+def _f(store, truth, valid=None):
+    """Change counts of ``store`` against the truth, on ``valid`` pixels only when given."""
+    if valid is None:
         return evaluate(store, truth).changes
     import cv2
 
-    arrays = tiles.open_result_store(store)
-    mask = arrays["change_mask"][:] > 0
+    mask = tiles.open_result_store(store)["change_mask"][:] > 0
     truth_mask = cv2.imread(str(Path(truth, "change_mask.png")), cv2.IMREAD_UNCHANGED) > 0
-    return ops.confusion(mask, truth_mask, valid=np.isfinite(arrays["registered"][:]))
+    return ops.confusion(mask, truth_mask, valid=valid)
 
 
 def _rsmb(*args):
     return subprocess.run([sys.executable, "-m", "rsmb", *map(str, args)], capture_output=True, text=True)
 
 
+def _user_cut(references, capture, target, resampling=USER_DEFAULT):
+    """What a user cuts by hand from ``references`` for ``capture``: each file
+    reprojected onto the capture's grid with rasterio (``rio warp --like
+    capture.tif --resampling RESAMPLING``), the first file with data winning, in
+    the references' dtype, 0 = nodata."""
+    import rasterio
+    from rasterio.warp import Resampling, reproject
+
+    with rasterio.open(capture) as cap:
+        profile = cap.profile | dict(nodata=0)
+        cut = None
+        for path in references:
+            with rasterio.open(path) as src:
+                warped = np.zeros((cap.height, cap.width), src.dtypes[0])
+                reproject(rasterio.band(src, 1), warped, dst_transform=cap.transform, dst_crs=cap.crs,
+                          src_nodata=src.nodata, dst_nodata=0, resampling=Resampling[resampling])
+            cut = warped if cut is None else np.where(cut == 0, warped, cut)
+    with rasterio.open(target, "w", **(profile | dict(dtype=cut.dtype.name))) as dst:
+        dst.write(cut, 1)
+    return Path(target)
+
+
+def _metric_pixel(reference, capture):
+    """(x, y) size in the capture CRS's units of the reference's centre pixel."""
+    import rasterio
+    from rasterio.warp import transform
+
+    with rasterio.open(reference) as ref, rasterio.open(capture) as cap:
+        c, r = ref.width / 2, ref.height / 2
+        xs, ys = ref.transform @ (np.array([c, c + 1, c]), np.array([r, r, r + 1]))
+        xs, ys = transform(ref.crs, cap.crs, np.asarray(xs).tolist(), np.asarray(ys).tolist())
+    return float(np.hypot(xs[1] - xs[0], ys[1] - ys[0])), float(np.hypot(xs[2] - xs[0], ys[2] - ys[0]))
+
+
+def _pairing_case(work, name, references, capture, truth, base, valid_from_store=False):
+    """F of rsmb on the reference set, of the user's rasterio cuts of the same set
+    (``rio warp``'s default resampling and the one rsmb chose), and rsmb's deltas
+    against them and against the full-resolution hand cut (``base``: F of a
+    callable of the valid pixels, None for all)."""
+    slug = name.replace(" ", "_").replace(":", "")
+    result = detect(references, capture, work / f"{slug}.zarr")
+    valid = np.isfinite(tiles.open_result_store(work / f"{slug}.zarr")["registered"][:]) if valid_from_store else None
+    counts = _f(work / f"{slug}.zarr", truth, valid)
+    grid = tiles.RasterGrid.from_path(capture)
+    how = list(dict.fromkeys(tiles.resampling_for(tiles.RasterGrid.from_path(r), grid) for r in references))
+    users = {}
+    for resampling in dict.fromkeys([USER_DEFAULT] + [h for h in how if h != "copy"]):
+        cut = _user_cut(references, capture, work / f"{slug}_user_{resampling}.tif", resampling)
+        detect(cut, capture, work / f"{slug}_user_{resampling}.zarr")
+        users[resampling] = _f(work / f"{slug}_user_{resampling}.zarr", truth, valid).f_measure
+    full = base(valid)
+    return {"f_measure": counts.f_measure, "precision": counts.precision, "recall": counts.recall,
+            "full_cut_f": full, "delta": counts.f_measure - full, "user_cut_f": users,
+            "delta_user_cut": {k: counts.f_measure - v for k, v in users.items()},
+            "coverage": result.reference_coverage, "resampling": ",".join(how),
+            "pixel_m": _metric_pixel(references[0], capture)}
+
+
 def bench_pairing(data, workdir, *, size=512):
-    """Georeferenced pairing cases against the hand-cut pair."""
+    """Georeferenced pairing cases against two kinds of hand-cut pair: the
+    full-resolution cut (the scene at the capture's grid) and the user's rasterio
+    cuts of the same case's reference (``rio warp --like``, with its default
+    resampling, nearest, and with the resampling rsmb chose): their difference is
+    what the reference set carries, rsmb's delta to the latter what its pairing
+    costs."""
     work = Path(workdir, "pairing")
     scene, source = _scene(data, (1024, 1024))
     spec = CaptureSpec((256, 300), (size, size), seed=7, changes=6, exposure=32.0)
-    cut = write_capture(work / "capture.tif", scene, spec, hand_cut=work / "cut")
+    capture = work / "capture.tif"
+    cut = write_capture(capture, scene, spec, hand_cut=work / "cut")
     truth = work / "capture.truth"
     detect(cut.reference, cut.distorted, work / "cut.zarr")
-    base = _f(work / "cut.zarr", truth).f_measure
-    out = {"scene": source, "hand_cut_f": base, "cases": {}}
+    full = {}
+
+    def base(valid):
+        key = None if valid is None else valid.tobytes()
+        if key not in full:
+            full[key] = _f(work / "cut.zarr", truth, valid).f_measure
+        return full[key]
+
+    out = {"scene": source, "hand_cut_f": base(None), "cases": {}}
     for name, kw in PAIRING_CASES.items():
         references = write_reference(work / name.replace(" ", "_"), scene, **kw)
-        store = work / f"{len(out['cases'])}.zarr"
-        result = detect(references, work / "capture.tif", store)
-        f = _f(store, truth).f_measure
-        out["cases"][name] = {"f_measure": f, "delta": f - base, "coverage": result.reference_coverage}
+        out["cases"][name] = _pairing_case(work, name, references, capture, truth, base)
     references = write_reference(work / "partial", scene[:, :300 + size * 2 // 3])
-    result = detect(references, work / "capture.tif", work / "partial.zarr")
-    counts = _f(work / "partial.zarr", truth, covered_only=True)
-    out["cases"]["partial overlap"] = {"f_measure": counts.f_measure, "precision": counts.precision,
-                                       "recall": counts.recall, "coverage": result.reference_coverage}
+    out["cases"]["partial overlap"] = _pairing_case(work, "partial overlap", references, capture, truth, base,
+                                                    valid_from_store=True)
     far = write_reference(work / "far", scene[:200, :200])
     moved = work / "moved.tif"
     write_capture(moved, scene, spec, offset_m=(5000.0, 0.0))
-    codes = {"no overlap": _rsmb("detect", far[0], work / "capture.tif", "-o", work / "x.zarr"),
+    codes = {"no overlap": _rsmb("detect", far[0], capture, "-o", work / "x.zarr"),
              "5 km apart": _rsmb("detect", cut.reference, moved, "-o", work / "y.zarr")}
     out["refused"] = {k: {"exit": p.returncode, "message": p.stderr.strip()} for k, p in codes.items()}
-    _echo(f"survey pairing ({source}, {size} x {size} capture): hand-cut same-grid pair F {base:.3f}")
+    _echo(f"survey pairing ({source}, {size} x {size} capture): F against the full-resolution hand cut "
+          f"(F {out['hand_cut_f']:.3f}) and against the user's own rasterio cuts of the same reference "
+          f"(rio warp --like capture.tif, {USER_DEFAULT} and the resampling rsmb chose)")
     for name, r in out["cases"].items():
-        extra = (f", precision {r['precision']:.3f}, recall {r['recall']:.3f} on the covered part"
-                 if "precision" in r else f" ({r['delta']:+.3f})")
-        _echo(f"  {name:24s} F {r['f_measure']:.3f}{extra}, coverage {r['coverage']:.2f}")
+        part = " on the covered part" if r["coverage"] < 1.0 else ""
+        users = ", ".join(f"{r['delta_user_cut'][k]:+.3f} vs {k} cut {v:.3f}" for k, v in r["user_cut_f"].items())
+        _echo(f"  {name:24s} F {r['f_measure']:.3f} ({r['delta']:+.3f} vs full-res cut {r['full_cut_f']:.3f}; "
+              f"{users}){part}; reference {r['pixel_m'][0]:.2f} x {r['pixel_m'][1]:.2f} m, rsmb "
+              f"{r['resampling']}, coverage {r['coverage']:.2f}")
     for name, r in out["refused"].items():
         _echo(f"  {name:24s} exit {r['exit']}: {r['message']}")
     return out

@@ -8,6 +8,7 @@ from ._georef import (
     is_georeferenced,
     reference_coverage,
     reference_window,
+    resampling_for,
 )
 from ._grid import Tile, TileGrid
 from ._pairing import Pairing, pair_images
@@ -46,6 +47,7 @@ __all__ = [
     "pair_images",
     "reference_coverage",
     "reference_window",
+    "resampling_for",
     "Tile",
     "TileGrid",
     "WindowStats",

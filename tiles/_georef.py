@@ -31,6 +31,7 @@ __all__ = [
     "is_georeferenced",
     "reference_coverage",
     "reference_window",
+    "resampling_for",
 ]
 
 #: Points per edge when a footprint is carried into another CRS (edges curve).
@@ -40,8 +41,14 @@ _COVERAGE_SAMPLES = 1024
 #: Two grids whose origins differ by a whole number of pixels within this many
 #: pixels (and share CRS, pixel size and rotation) are the same grid.
 _ALIGN_TOL = 1e-6
-#: Extra reference pixels read around a window for the bilinear kernel.
-_KERNEL_PAD = 2
+#: Radius of the resampling kernels in reference pixels (lanczos: 3), widened by
+#: the ratio of pixel sizes where the reference is finer: the reference pixels
+#: read around a window beyond those under it.
+_KERNEL_PAD = 3
+#: A capture pixel that spans at least this many reference pixels along both of
+#: its axes is the mean of the reference pixels under it (``average``); any
+#: other pixel-size ratio is resampled with a Lanczos kernel.
+_AVERAGE_RATIO = 2.0
 
 PathOrGrid = Union[str, os.PathLike, "RasterGrid"]
 
@@ -244,6 +251,47 @@ def reference_coverage(references: PathOrGrid | Sequence[PathOrGrid], capture: R
     return Coverage(float(union.mean()), files, tuple(fractions))
 
 
+# ------------------------------------------------------------------ resampling
+
+
+def _pixel_steps(reference: RasterGrid, capture: RasterGrid) -> tuple[float, float]:
+    """Length, in reference pixels, of one capture pixel step along the capture's
+    columns and along its rows, at the capture's centre."""
+    h, w = capture.shape
+    cols = np.array([w / 2, w / 2 + 1, w / 2])
+    rows = np.array([h / 2, h / 2, h / 2 + 1])
+    xs, ys = capture.affine @ (cols, rows)
+    xs, ys = _transform_points(capture.crs, reference.crs, np.asarray(xs, float), np.asarray(ys, float))
+    c, r = ~reference.affine @ (xs, ys)
+    c, r = np.asarray(c), np.asarray(r)
+    return float(np.hypot(c[1] - c[0], r[1] - r[0])), float(np.hypot(c[2] - c[0], r[2] - r[0]))
+
+
+def resampling_for(reference: RasterGrid, capture: RasterGrid) -> str:
+    """How ``reference`` is resampled onto ``capture``'s grid, from the ratio of
+    their pixel sizes at the capture's centre.
+
+    Parameters
+    ----------
+    reference, capture : RasterGrid
+
+    Returns
+    -------
+    str
+        ``"copy"`` when the two are one grid (a whole-pixel offset apart);
+        ``"average"`` when a capture pixel spans at least two reference pixels
+        along both of its axes (the reference pixels under it are averaged);
+        ``"lanczos"`` otherwise (a coarser reference, a similar pixel size, or
+        finer along one axis only).  Names of ``rasterio.enums.Resampling``.
+    """
+    if _grid_offset(reference, capture) is not None:
+        return "copy"
+    steps = _pixel_steps(reference, capture)
+    if all(math.isfinite(v) for v in steps) and min(steps) >= _AVERAGE_RATIO:
+        return "average"
+    return "lanczos"
+
+
 # ------------------------------------------------------------------ the window
 
 
@@ -276,12 +324,19 @@ def reference_window(
 
     Notes
     -----
-    Resampling is bilinear (GDAL's warper: where the reference is finer than the
-    capture the kernel widens to the reference pixels under a capture pixel, so it
-    also averages; nodata pixels are left out and the weights renormalised, so a
-    capture pixel is valid when any reference pixel under its kernel is).  A
-    reference on the capture's own grid (same CRS, pixel size and rotation, origin
-    a whole number of pixels away) is copied, not resampled: the result is exact.
+    Resampling is chosen once per reference file from the ratio of pixel sizes
+    (:func:`resampling_for`, the same for every window of a capture, so windows
+    stitch seamlessly): where a capture pixel spans at least two reference pixels
+    along both axes, the mean of the reference pixels under it (GDAL's
+    ``average``, what a coarser sensor integrates); otherwise a Lanczos kernel
+    (GDAL's ``lanczos``, windowed sinc of 3 lobes: detail near the reference's
+    sampling limit keeps most of its contrast, where bilinear interpolation would
+    soften a coarser reference; where the reference is finer along one axis GDAL
+    widens the kernel along it).  Nodata pixels are left out of the kernel and
+    its weights renormalised over the valid ones; a capture pixel is valid where
+    its centre lies on valid reference data.  A reference on the capture's own
+    grid (same CRS, pixel size and rotation, origin a whole number of pixels
+    away) is copied, not resampled: the result is exact.
 
     Only the reference pixels under the window (plus a few for the kernel) are
     read from each file; consecutive files on one grid are mosaicked before
@@ -294,7 +349,7 @@ def reference_window(
         return out
     dst_affine = capture.window_affine(rows, cols)
     for run in _same_grid_runs(_as_grids(references)):
-        _fill_from_run(out, run, capture.crs, dst_affine)
+        _fill_from_run(out, run, capture.crs, dst_affine, resampling_for(run[0][0], capture))
         if not np.isnan(out).any():
             break
     return out
@@ -347,8 +402,8 @@ def _source_window(base: RasterGrid, dst_crs: str, dst_affine, shape) -> tuple[i
         return 0, 0, 0, 0
     c, r = ~base.affine @ (xs[ok], ys[ok])
     c, r = np.asarray(c), np.asarray(r)
-    ratio = max((c.max() - c.min()) / shape[1], (r.max() - r.min()) / shape[0])
-    pad = math.ceil(ratio) + _KERNEL_PAD
+    ratio = max((c.max() - c.min()) / shape[1], (r.max() - r.min()) / shape[0], 1.0)
+    pad = math.ceil(_KERNEL_PAD * ratio) + 1
     return (math.floor(r.min()) - pad, math.ceil(r.max()) + pad,
             math.floor(c.min()) - pad, math.ceil(c.max()) + pad)
 
@@ -372,8 +427,9 @@ def _mosaic_run(run, window) -> np.ndarray | None:
     return mosaic
 
 
-def _fill_from_run(out: np.ndarray, run, dst_crs: str, dst_affine) -> None:
-    """Fill the NaN pixels of ``out`` with one run of same-grid reference files."""
+def _fill_from_run(out: np.ndarray, run, dst_crs: str, dst_affine, resampling: str) -> None:
+    """Fill the NaN pixels of ``out`` with one run of same-grid reference files,
+    resampled with ``resampling`` (:func:`resampling_for`)."""
     from rasterio.transform import Affine
 
     base = run[0][0]
@@ -384,14 +440,16 @@ def _fill_from_run(out: np.ndarray, run, dst_crs: str, dst_affine) -> None:
     if mosaic is None:
         return
     src_affine = base.affine @ Affine.translation(window[2], window[0])
-    warped = _resample(mosaic, base.crs, src_affine, dst_crs, dst_affine, out.shape)
+    warped = _resample(mosaic, base.crs, src_affine, dst_crs, dst_affine, out.shape, resampling)
     hole = np.isnan(out)
     out[hole] = warped[hole]
 
 
-def _resample(src: np.ndarray, src_crs: str, src_affine, dst_crs: str, dst_affine, shape) -> np.ndarray:
+def _resample(src: np.ndarray, src_crs: str, src_affine, dst_crs: str, dst_affine, shape,
+              resampling: str) -> np.ndarray:
     """``src`` (NaN = no data) onto the destination grid: a copy when the grids
-    coincide up to a whole-pixel offset, bilinear otherwise."""
+    coincide up to a whole-pixel offset, else with ``resampling`` (a name of
+    ``rasterio.enums.Resampling``)."""
     from rasterio.enums import Resampling
     from rasterio.warp import reproject
 
@@ -404,5 +462,5 @@ def _resample(src: np.ndarray, src_crs: str, src_affine, dst_crs: str, dst_affin
     dst = np.full(shape, np.nan, dtype=np.float32)
     reproject(source=src, destination=dst, src_transform=src_affine, src_crs=_crs(src_crs),
               src_nodata=np.nan, dst_transform=dst_affine, dst_crs=_crs(dst_crs),
-              dst_nodata=np.nan, resampling=Resampling.bilinear)
+              dst_nodata=np.nan, resampling=Resampling["lanczos" if resampling == "copy" else resampling])
     return dst

@@ -31,7 +31,8 @@ import numpy as np
 
 from rsmb.ops._errors import InputError, ParameterError
 
-from ._georef import Coverage, RasterGrid, _check_window, is_georeferenced, reference_coverage, reference_window
+from ._georef import (Coverage, RasterGrid, _check_window, is_georeferenced, reference_coverage, reference_window,
+                      resampling_for)
 from ._ingest import read_clipped
 from ._io import probe_header
 
@@ -151,8 +152,9 @@ def _pair_georeferenced(paths, headers, cap, cap_shape, cap_geo) -> Pairing:
     if not coverage.files:
         raise InputError(f"{cap}: footprint does not overlap the reference {_name_files(paths)}")
     overlapping = tuple(g for g in ref_grids if g.path in coverage.files)
+    how = ", ".join(dict.fromkeys(resampling_for(g, grid) for g in overlapping))
     reason = (f"both georeferenced: the reference set is resampled onto the capture grid "
-              f"({coverage.fraction:.1%} of the capture covered)")
+              f"({how}; {coverage.fraction:.1%} of the capture covered)")
     return Pairing("georeferenced", cap, cap_shape, tuple(paths), reason, grid, overlapping, coverage)
 
 

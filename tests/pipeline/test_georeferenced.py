@@ -89,3 +89,25 @@ def test_no_overlap_and_a_pair_5_km_apart_are_refused(tmp_path, archive, capsys)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "does not overlap" in err[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["far", "moved.tif", "moved.truth"]
+
+
+def test_the_bench_user_cut_is_the_reference_on_the_capture_grid(tmp_path):
+    # the bench's second baseline: a user's own rasterio cut of a case's reference
+    import rasterio
+
+    from rsmb.pipeline._bench_survey import _metric_pixel, _user_cut
+
+    scene = (0.05 + 0.7 * ops.aerial_scene((160, 160), seed=2)).astype(np.float32)
+    cut = write_capture(tmp_path / "capture.tif", scene, CaptureSpec((40, 50), (96, 96), seed=1, changes=1),
+                        hand_cut=tmp_path / "cut")
+    two = write_reference(tmp_path / "two", scene, split=2)  # the capture straddles both files
+    user = _user_cut(two, tmp_path / "capture.tif", tmp_path / "user.tif")
+    with rasterio.open(user) as a, rasterio.open(cut.reference) as b:
+        assert a.transform == b.transform and a.crs == b.crs
+        np.testing.assert_array_equal(a.read(1), b.read(1))
+    coarse = write_reference(tmp_path / "coarse", scene, pixel=0.7)
+    assert _metric_pixel(coarse[0], tmp_path / "capture.tif") == pytest.approx((0.7, 0.7), abs=1e-6)
+    user = _user_cut(coarse, tmp_path / "capture.tif", tmp_path / "user_coarse.tif")
+    with rasterio.open(user) as a, rasterio.open(cut.reference) as b:
+        got, full = a.read(1).astype(np.float64), b.read(1).astype(np.float64)
+    assert (got > 0).all() and np.corrcoef(got.ravel(), full.ravel())[0, 1] > 0.9

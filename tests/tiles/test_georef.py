@@ -13,7 +13,7 @@ from rasterio.warp import calculate_default_transform, reproject
 from rsmb import tiles
 from rsmb.ops import InputError, ParameterError, aerial_scene
 from rsmb.tiles import _georef
-from rsmb.tiles._georef import RasterGrid, reference_coverage, reference_window
+from rsmb.tiles._georef import RasterGrid, reference_coverage, reference_window, resampling_for
 from rsmb.tiles._pairing import pair_images
 
 UTM = "EPSG:32633"  # lat ~45 N at y = 5 000 000
@@ -155,13 +155,114 @@ def test_only_the_window_is_read(files, grid, monkeypatch):
 def test_coarser_reference_matches_a_whole_reproject(files, grid, scene):
     coarse = scene.reshape(200, 2, 200, 2).mean(axis=(1, 3)).astype(np.float32)
     path = _write(files["dir"] / "coarse.tif", coarse, UTM, _utm(0, 0, pixel=2.0))
+    assert resampling_for(RasterGrid.from_path(path), grid) == "lanczos"
     out = reference_window(path, grid, *_window(grid, margin=8))
     expected = np.full(out.shape, np.nan, np.float32)
     reproject(coarse, expected, src_transform=_utm(0, 0, 2.0), src_crs=UTM, src_nodata=np.nan,
               dst_transform=grid.window_affine(*_window(grid, margin=8)), dst_crs=UTM,
-              dst_nodata=np.nan, resampling=Resampling.bilinear)
+              dst_nodata=np.nan, resampling=Resampling.lanczos)
     np.testing.assert_allclose(out, expected, atol=1e-5)
     assert _corr(out, _crop(scene, margin=8)) > 0.95
+
+
+def _other_grid(path, pixel_yx, shape, crs=UTM, origin=(X0, Y0)):
+    """A header-only grid (no pixels needed to choose the resampling)."""
+    return RasterGrid(str(path), CRS.from_user_input(crs).to_wkt(), (pixel_yx[1], 0.0, origin[0], 0.0,
+                                                                       -pixel_yx[0], origin[1]), shape)
+
+
+@pytest.mark.parametrize("pixel_yx, expected", [
+    ((1.0, 1.0), "copy"),      # the capture's own grid
+    ((2.0, 2.0), "lanczos"),   # coarser: interpolated
+    ((0.8, 0.8), "lanczos"),   # slightly finer: under 2 reference pixels per capture pixel
+    ((0.5, 0.5), "average"),   # 2 x 2 reference pixels under each capture pixel
+    ((0.25, 0.25), "average"),
+    ((0.5, 1.0), "lanczos"),   # finer along one axis only
+    ((0.5, 0.4), "average"),
+])
+def test_resampling_is_chosen_by_the_pixel_size_ratio(grid, pixel_yx, expected):
+    reference = _other_grid("other.tif", pixel_yx, (900, 900))
+    assert resampling_for(reference, grid) == expected
+
+
+def test_resampling_of_a_geographic_reference_uses_its_metric_pixel_size(grid):
+    # at ~45 N a degree of longitude is ~78.8 km, a degree of latitude ~111.1 km
+    lon, lat = rasterio.warp.transform(UTM, "EPSG:4326", [X0], [Y0])
+    fine = _other_grid("fine.tif", (0.45 / 111_100, 0.45 / 78_800), (900, 900), "EPSG:4326",
+                       (lon[0] - 0.01, lat[0] + 0.01))
+    square = _other_grid("square.tif", (0.6 / 111_100, 0.6 / 111_100), (900, 900), "EPSG:4326",
+                        (lon[0] - 0.01, lat[0] + 0.01))
+    assert resampling_for(fine, grid) == "average"
+    # square degrees: 0.43 m east-west (2.3 per capture pixel) but 0.6 m north-south (1.7)
+    assert resampling_for(square, grid) == "lanczos"
+
+
+def test_coarser_reference_keeps_the_contrast_of_fine_detail(files, grid):
+    # a pattern of period 3 reference pixels (2 m) resampled onto the 1 m capture grid: the
+    # Lanczos kernel keeps most of its amplitude; bilinear interpolation halves it
+    period = 3 * 2.0  # metres
+
+    def pattern(y, x):
+        return (np.sin(2 * np.pi * x / period + 0.3) * np.cos(2 * np.pi * y / (1.1 * period) + 0.2)).astype(np.float32)
+
+    rows, cols = np.mgrid[0:200, 0:200] * 2.0 + 1.0  # 2 m pixel centres, metres from the origin
+    path = _write(files["dir"] / "pattern.tif", pattern(rows, cols), UTM, _utm(0, 0, pixel=2.0))
+    r, c = CAP_OFFSET
+    cy, cx = np.mgrid[0:CAP_SHAPE[0], 0:CAP_SHAPE[1]] + 0.5
+    truth = pattern(cy + r, cx + c).astype(np.float64)
+
+    def kept(out):  # least-squares amplitude of the true pattern in ``out``
+        return float((out * truth).sum() / (truth * truth).sum())
+
+    out = reference_window(path, grid, *_window(grid))
+    bilinear = np.full(out.shape, np.nan, np.float32)
+    reproject(pattern(rows, cols), bilinear, src_transform=_utm(0, 0, 2.0), src_crs=UTM,
+              dst_transform=grid.affine, dst_crs=UTM, resampling=Resampling.bilinear)
+    assert kept(out) > 0.9 and kept(bilinear) < 0.5
+    assert float(np.sqrt(np.mean((out - truth) ** 2))) < 0.06
+
+
+@pytest.mark.parametrize("pixel", [0.7, 0.4, 1.6])
+def test_a_nodata_edge_keeps_a_constant_reference_constant(files, grid, pixel):
+    # the kernel's weights are renormalised over the valid pixels (Lanczos has negative lobes: without it
+    # the last pixels before the edge would be off); the capture is valid up to the data's edge
+    shape = (int(REF_SHAPE[0] / pixel), int(REF_SHAPE[1] / pixel))
+    edge = int((CAP_OFFSET[1] + 80) / pixel)  # reference column of the edge: the capture's column ~80
+    constant = np.full(shape, 0.5, np.float32)
+    constant[:, edge:] = -1.0
+    path = _write(files["dir"] / f"edge{pixel}.tif", constant, UTM, _utm(0, 0, pixel), nodata=-1.0)
+    out = reference_window(path, grid, *_window(grid))
+    x = np.arange(CAP_SHAPE[1]) + 0.5 + CAP_OFFSET[1]  # capture pixel centres, metres from the origin
+    np.testing.assert_array_equal(np.isfinite(out), np.broadcast_to(x < edge * pixel, out.shape))
+    np.testing.assert_allclose(out[np.isfinite(out)], 0.5, atol=1e-6)
+
+
+@pytest.mark.parametrize("factor", [2, 4])
+def test_finer_reference_is_the_mean_of_the_pixels_under_each_capture_pixel(files, grid, factor):
+    fine = np.random.default_rng(factor).random((REF_SHAPE[0] * factor, REF_SHAPE[1] * factor), np.float32)
+    path = _write(files["dir"] / f"fine{factor}.tif", fine, UTM, _utm(0, 0, pixel=1.0 / factor))
+    out = reference_window(path, grid, *_window(grid))
+    (r, c), (h, w) = CAP_OFFSET, CAP_SHAPE
+    under = fine[r * factor:(r + h) * factor, c * factor:(c + w) * factor]
+    np.testing.assert_allclose(out, under.reshape(h, factor, w, factor).mean(axis=(1, 3)), atol=1e-6)
+
+
+@pytest.mark.parametrize("pixel", [2.0, 0.7, 0.4])
+def test_windows_of_a_resampled_reference_stitch_into_the_whole(files, grid, scene, pixel):
+    # tiles that do not divide the window, and one window for the whole: the same pixels
+    shape = (int(REF_SHAPE[0] / pixel), int(REF_SHAPE[1] / pixel))
+    resampled = np.full(shape, np.nan, np.float32)
+    reproject(scene, resampled, src_transform=_utm(0, 0), src_crs=UTM, dst_transform=_utm(0, 0, pixel),
+              dst_crs=UTM, resampling=Resampling.average if pixel > 1 else Resampling.lanczos)
+    path = _write(files["dir"] / f"grid{pixel}.tif", resampled, UTM, _utm(0, 0, pixel))
+    rows, cols = _window(grid, margin=9)
+    whole = reference_window(path, grid, rows, cols)
+    assert np.isfinite(whole).all()
+    tiled = np.vstack([np.hstack([reference_window(path, grid, slice(r0, min(r0 + 37, rows.stop)),
+                                                   slice(c0, min(c0 + 53, cols.stop)))
+                                  for c0 in range(cols.start, cols.stop, 53)])
+                       for r0 in range(rows.start, rows.stop, 37)])
+    np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-6)  # float32 rounding; a seam would be ~1e-2
 
 
 @pytest.mark.parametrize("crs, res", [("EPSG:3857", 0.7), ("EPSG:4326", 6e-6)])
@@ -278,3 +379,12 @@ def test_mixed_pairing_is_pixel_for_pixel(files, tmp_path, scene):
 def test_no_reference_is_a_parameter_error(files):
     with pytest.raises(ParameterError, match="references"):
         pair_images([], files["cap"])
+
+
+def test_pairing_reason_names_the_resampling(files, scene):
+    coarse = _write(files["dir"] / "coarse_reason.tif", scene[::2, ::2], UTM, _utm(0, 0, pixel=2.0))
+    fine = _write(files["dir"] / "fine_reason.tif", np.repeat(np.repeat(scene, 2, 0), 2, 1), UTM,
+                  _utm(0, 0, pixel=0.5))
+    assert "(copy; 100.0% of the capture covered)" in pair_images(files["ref"], files["cap"]).reason
+    assert "(lanczos; " in pair_images(coarse, files["cap"]).reason
+    assert "(average, lanczos; " in pair_images([fine, coarse], files["cap"]).reason
