@@ -2,6 +2,7 @@
 process-wide settings only in worker processes."""
 
 import os
+import sys
 
 import pytest
 
@@ -75,3 +76,30 @@ def test_one_shared_runner_serves_concurrent_runs():
             runs = [driver.submit(runner.map, "run", _negate, [(i + 100 * r,) for i in range(30)]) for r in range(3)]
             results = [f.result() for f in runs]
     assert results == [[-(i + 100 * r) for i in range(30)] for r in range(3)]
+
+
+def _blas_threads(_):
+    return _scheduler.blas_threads()
+
+
+def test_a_run_in_the_calling_process_runs_one_blas_thread_and_restores_them():
+    import numpy  # noqa: F401 - loads numpy's OpenBLAS
+
+    before = _scheduler.blas_threads()
+    if not before:
+        pytest.skip("no OpenBLAS found in this process")
+    saved = _scheduler._set_blas_threads(2)  # a caller's setting that is not one
+    try:
+        out = Runner("threads", workers=2).map("blas", _blas_threads, [(i,) for i in range(4)])
+        assert all(counts and set(counts) == {1} for counts in out)  # every OpenBLAS at one thread in tasks
+        assert set(_scheduler.blas_threads()) == {2}  # the caller's setting is back
+    finally:
+        _scheduler._set_blas_threads(saved)
+    assert _scheduler.blas_threads() == before
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="OpenBLAS is found through /proc/self/maps")
+def test_worker_processes_run_one_blas_thread():
+    out = Runner("processes", workers=1).map("blas", _blas_threads, [(0,), (1,)])
+    assert all(set(counts) <= {1} for counts in out)
+    assert any(out)  # numpy's OpenBLAS is found in the worker
