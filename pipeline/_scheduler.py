@@ -81,9 +81,9 @@ def _openblas_functions(path):
 
 
 def blas_threads():
-    """Thread counts of the OpenBLAS libraries loaded in this process (a list,
-    empty where none is found)."""
-    return [get() for _, get, _ in _openblas_libraries()]
+    """Thread counts of the OpenBLAS libraries loaded in this process: library
+    path -> count (empty where none is found)."""
+    return {path: get() for path, get, _ in _openblas_libraries()}
 
 
 def _set_blas_threads(counts):
