@@ -4,8 +4,10 @@ per image, where its effects are largest (the image's far corners) and before
 any tile is registered.
 
 Each tile then registers on a reference pre-warped by that slow part.  Found
-on the image at a coarser scale, it costs a few tens of milliseconds per
-image; where there is none (an in-plane capture), the tiles pay nothing.
+on the image at a coarser scale, it costs the same small amount per image
+whatever its size (a fixed cost per capture of a survey night); where there is
+none (an in-plane capture), the tiles pay nothing.  The fit runs as one task
+on the runner, under its one-thread settings.
 """
 
 import logging
