@@ -4,8 +4,10 @@ per image, where its effects are largest (the image's far corners) and before
 any tile is registered.
 
 Each tile then registers on a reference pre-warped by that slow part.  Found
-on the image at a coarser scale, it costs a few tens of milliseconds per
-image; where there is none (an in-plane capture), the tiles pay nothing.
+on the image at a coarser scale, it costs the same small amount per image
+whatever its size (a fixed cost per capture of a survey night); where there is
+none (an in-plane capture), the tiles pay nothing.  The fit runs as one task
+on the runner, under its one-thread settings.
 """
 
 import logging
@@ -67,24 +69,31 @@ def slow_stage(runner, group, run, plan, timings):
 
 
 def _find_slow(runner, run, plan):
-    """(H, 3) float32: rx, ry, ty of every capture row, NaN without a slow part."""
+    """(H, 3) float32: rx, ry, ty of every capture row, NaN without a slow part.
+    The overviews are made one task per block, the fit is one task of its own
+    (it runs on the scheduler's workers, with their one-thread settings)."""
     factor, margin = overview_factor(plan.shape), plan.margin
     phase = margin % factor  # reference cells aligned with the capture's
     ref_shape = (plan.shape[0] + 2 * margin, plan.shape[1] + 2 * margin)
     capture = _overview(runner, run, "capture", plan.blocks, plan.shape, 0, factor)
     reference = _overview(runner, run, "reference", plan.reference_blocks, ref_shape, phase, factor)
     offset = -((margin - phase) // factor)  # the reference overview's cell 0 in capture cells
-    cam = plan.camera
+    return runner.map("slow", _slow_task, [(reference, capture, offset, factor, plan.shape, plan.camera,
+                                            plan.params.slow_axes, plan.params.slow_search)])[0]
+
+
+def _slow_task(reference, capture, offset, factor, shape, cam, axes, search):
+    """The slow part found on the overviews (``factor`` times coarser than the
+    capture of ``shape``), at every capture row: (H, 3) float32."""
     camera = ops.Camera(cam.focal / factor, tuple((c - 0.5 * (factor - 1)) / factor for c in cam.center_xy))
     valid = np.isfinite(capture)
-    out = np.full((plan.shape[0], 3), np.nan, dtype=np.float32)
+    out = np.full((shape[0], 3), np.nan, dtype=np.float32)
     if valid.sum() < 0.05 * valid.size:
         return out
     path = ops.estimate_slow(reference, np.nan_to_num(capture), valid, camera=camera,
                              reference_origin_yx=(offset, offset), distorted_origin_yx=(0, 0),
-                             axes=plan.params.slow_axes, limit=2.0 * plan.params.slow_search,
-                             scale=factor)
+                             axes=axes, limit=2.0 * search, scale=factor)
     if path is not None:
-        rows = path.at_rows(np.arange(plan.shape[0]), factor=factor)
+        rows = path.at_rows(np.arange(shape[0]), factor=factor)
         out[:, :2], out[:, 2] = rows.rotation, rows.ty
     return out

@@ -36,9 +36,66 @@ log = logging.getLogger("rsmb")
 
 _MMAP_THRESHOLD = 4 << 20
 _process_ready = False
-_opencv_lock = threading.Lock()
-_opencv_runs = 0  # runs of Runner.map under way in this process
-_opencv_saved = None  # OpenCV's thread count before the first of them
+_threads_lock = threading.Lock()
+_threads_runs = 0  # runs of Runner.map under way in this process
+_threads_saved = None  # OpenCV's and the OpenBLAS libraries' thread counts before the first of them
+# OpenBLAS thread-count functions by symbol prefix: numpy's and scipy's wheels
+# carry their own renamed OpenBLAS (scipy_openblas64_, scipy_openblas), OpenCV's
+# wheel a plain one (openblas)
+_OPENBLAS_SYMBOLS = (("scipy_openblas_get_num_threads64_", "scipy_openblas_set_num_threads64_"),
+                     ("scipy_openblas_get_num_threads", "scipy_openblas_set_num_threads"),
+                     ("openblas_get_num_threads64_", "openblas_set_num_threads64_"),
+                     ("openblas_get_num_threads", "openblas_set_num_threads"))
+_openblas_cache = {}  # library path -> (get, set) or None
+
+
+def _openblas_libraries():
+    """(path, get, set): the thread-count functions of every OpenBLAS loaded in
+    this process (Linux: from /proc/self/maps; elsewhere none)."""
+    try:
+        with open("/proc/self/maps") as maps:
+            paths = {line.split(None, 5)[5].strip() for line in maps
+                     if "openblas" in line.lower() and len(line.split(None, 5)) == 6}
+    except OSError:
+        return []
+    out = []
+    for path in sorted(paths):
+        if path not in _openblas_cache:
+            _openblas_cache[path] = _openblas_functions(path)
+        if _openblas_cache[path] is not None:
+            out.append((path, *_openblas_cache[path]))
+    return out
+
+
+def _openblas_functions(path):
+    try:
+        lib = ctypes.CDLL(path, mode=getattr(os, "RTLD_NOLOAD", 0) | ctypes.RTLD_GLOBAL)
+    except OSError:
+        return None
+    for get, set_ in _OPENBLAS_SYMBOLS:
+        if hasattr(lib, get) and hasattr(lib, set_):
+            getter, setter = getattr(lib, get), getattr(lib, set_)
+            getter.restype, setter.restype, setter.argtypes = ctypes.c_int, None, [ctypes.c_int]
+            return getter, setter
+    return None
+
+
+def blas_threads():
+    """Thread counts of the OpenBLAS libraries loaded in this process: library
+    path -> count (empty where none is found)."""
+    return {path: get() for path, get, _ in _openblas_libraries()}
+
+
+def _set_blas_threads(counts):
+    """Set every loaded OpenBLAS to ``counts`` threads (an int for all, or
+    library path -> count as this returns); returns the counts they had."""
+    saved = {}
+    for path, get, set_ in _openblas_libraries():
+        saved[path] = get()
+        n = counts if isinstance(counts, int) else counts.get(path)
+        if n is not None and n != saved[path]:
+            set_(n)
+    return saved
 
 
 def configure_process():
@@ -56,6 +113,7 @@ def configure_process():
     import cv2
 
     cv2.setNumThreads(1)
+    _set_blas_threads(1)  # numpy's may be loaded since the last task (scipy's, OpenCV's)
     if _process_ready:
         return
     _process_ready = True
@@ -67,24 +125,26 @@ def configure_process():
 
 
 @contextlib.contextmanager
-def _one_opencv_thread():
-    """One OpenCV thread in this process while tasks may run in it; the thread
-    count it had is restored when the last of the runs under way ends."""
-    global _opencv_runs, _opencv_saved
+def _one_thread_each():
+    """One OpenCV thread and one thread per OpenBLAS in this process while
+    tasks may run in it; the thread counts they had are restored when the last
+    of the runs under way ends."""
+    global _threads_runs, _threads_saved
     import cv2
 
-    with _opencv_lock:
-        if _opencv_runs == 0:
-            _opencv_saved = cv2.getNumThreads()
+    with _threads_lock:
+        if _threads_runs == 0:
+            _threads_saved = cv2.getNumThreads(), _set_blas_threads(1)
             cv2.setNumThreads(1)
-        _opencv_runs += 1
+        _threads_runs += 1
     try:
         yield
     finally:
-        with _opencv_lock:
-            _opencv_runs -= 1
-            if _opencv_runs == 0:
-                cv2.setNumThreads(_opencv_saved)
+        with _threads_lock:
+            _threads_runs -= 1
+            if _threads_runs == 0:
+                cv2.setNumThreads(_threads_saved[0])
+                _set_blas_threads(_threads_saved[1])
 
 
 class _Progress:
@@ -152,7 +212,7 @@ class Runner:
         if not argument_lists:
             return []
         progress = _Progress(label, len(argument_lists)) if self.progress else None
-        with _one_opencv_thread():
+        with _one_thread_each():
             if self.client is not None:
                 return self._map_distributed(progress, func, argument_lists)
             return self._map_local(progress, label, func, argument_lists)

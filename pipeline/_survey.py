@@ -3,7 +3,9 @@
 DESIGN.md, "Survey archives" (a contract: scripts read it).  The captures the
 glob finds are paired with the reference set by footprint and run through
 :func:`detect`, several at once on one runner (one executor or cluster for the
-night, so the cores stay busy while a capture finishes its tail).  Per capture,
+night, so the cores stay busy while a capture finishes its tail; a capture's
+products and report are written outside the ``parallel`` captures being
+detected, so the next capture's tasks run meanwhile).  Per capture,
 under ``OUT_DIR/<path relative to the glob's fixed prefix, no suffix>/``:
 ``changes.zarr``, ``changes.gpkg`` (layer ``changes``), the masks and score as
 Cloud-Optimised GeoTIFFs, ``thumbnail.png`` and ``report/``.  A folder is built
@@ -14,6 +16,7 @@ retried, a changed one redone.  One bad capture never stops the night: it is
 ``failed`` with a one-line reason and the others finish.
 """
 
+import contextlib
 import dataclasses
 import datetime as _dt
 import glob
@@ -21,6 +24,7 @@ import json
 import logging
 import os
 import shutil
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -206,9 +210,10 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
     scheduler, workers, worker_timeout
         As for :func:`detect`; one runner serves the whole night.
     parallel : int, optional
-        Captures in flight at once; default one more than the cores of this
-        machine (a capture's own Python work, products and report, overlaps
-        the others' tasks).
+        Captures detected at once; default one more than the cores of this
+        machine.  A capture's products and report (its own Python work) are
+        written outside that count, beside the next captures' detection, so
+        the workers always have tasks while captures finish.
     dry_run : bool
         Say what would run and why; write nothing.
     report : bool
@@ -309,10 +314,15 @@ def _run_all(ledger, todo, out, references, config, run):
     """Run the captures of ``todo`` (``parallel`` at once on one runner) and
     record each in the ledger as it ends: capture -> CaptureResult."""
     results, total = {}, len(todo)
+    cores = os.cpu_count() or 1
+    parallel = run["parallel"] or cores + 1
+    # a slot per capture being detected; the driver has threads to spare for
+    # captures writing their products and report meanwhile
+    slots = threading.Semaphore(parallel)
     with open_runner(run["scheduler"], workers=run["workers"], shared=True, progress=False,
                      worker_timeout=run["worker_timeout"]) as runner, \
-            ThreadPoolExecutor(run["parallel"] or (os.cpu_count() or 1) + 1) as driver:
-        futures = {driver.submit(_run_capture, capture, name, out, references, config, runner, run["report"]):
+            ThreadPoolExecutor(parallel + cores + 1) as driver:
+        futures = {driver.submit(_run_capture, capture, name, out, references, config, runner, run["report"], slots):
                    (capture, name, run_id, why) for capture, name, run_id, why in todo}
         for count, future in enumerate(as_completed(futures), 1):
             capture, name, run_id, why = futures[future]
@@ -339,10 +349,11 @@ def _fail(ledger, run_id, capture, exc, seconds):
     return CaptureResult(str(capture), "failed", reason, seconds=seconds or 0.0)
 
 
-def _run_capture(capture, name, out, references, config, runner, report):
+def _run_capture(capture, name, out, references, config, runner, report, slots=None):
     """One capture, built aside and renamed into place: its store, products,
-    thumbnail and report.  Runs in a driver thread; its tasks on ``runner``.
-    A failure leaves nothing behind."""
+    thumbnail and report.  Runs in a driver thread; its tasks on ``runner``;
+    its detection holds one of ``slots`` (a semaphore), its products and
+    report none.  A failure leaves nothing behind."""
     start = time.perf_counter()
     header = tiles.probe_header(capture)[1]
     if not tiles.is_georeferenced(header):
@@ -352,7 +363,7 @@ def _run_capture(capture, name, out, references, config, runner, report):
     aside.mkdir(parents=True)
     try:
         folder = out / name
-        features, read = _build(capture, aside, folder, references, config, runner, report)
+        features, read = _build(capture, aside, folder, references, config, runner, report, slots)
         _swap_into_place(aside, folder)
     finally:
         shutil.rmtree(aside, ignore_errors=True)
@@ -360,11 +371,13 @@ def _run_capture(capture, name, out, references, config, runner, report):
                          len(features), float(sum(f.area_m2 for f in features)), time.perf_counter() - start)
 
 
-def _build(capture, aside, folder, references, config, runner, report):
+def _build(capture, aside, folder, references, config, runner, report, slots=None):
     """The capture's products in ``aside`` (to become ``folder``): returns its
-    change polygons and the reference files read."""
+    change polygons and the reference files read.  The detection holds one of
+    ``slots`` (a semaphore, if given)."""
     store = aside / "changes.zarr"
-    summary = detect(references, capture, store, config=config, runner=runner)
+    with slots if slots is not None else contextlib.nullcontext():
+        summary = detect(references, capture, store, config=config, runner=runner)
     # the store records where it lives once the folder is in place
     tiles.update_attrs(store, {"summary": {**summary.as_dict(), "output": str(folder / "changes.zarr")}})
     group = tiles.open_result_store(store)

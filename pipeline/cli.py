@@ -217,7 +217,8 @@ def _check_captures(ctx, param, value):
               help="Tile halo, pixels. Default: the largest displacement the search range allows.")
 @runtime_options
 @click.option("--parallel", type=click.IntRange(min=1), default=None,
-              help="Captures in flight at once (their tasks share the scheduler's workers) [default: cores + 1].")
+              help="Captures detected at once (their tasks share the scheduler's workers; each one's products "
+                   "and report are written beside the next ones' detection) [default: cores + 1].")
 @click.option("--dry-run", is_flag=True, help="Say what would run and why; write nothing.")
 @click.option("--no-report", is_flag=True, help="Skip each capture's HTML report.")
 @click.option("--json", "as_json", is_flag=True, help="Print the night's summary as JSON on stdout.")

@@ -2,6 +2,7 @@
 process-wide settings only in worker processes."""
 
 import os
+import sys
 
 import pytest
 
@@ -75,3 +76,32 @@ def test_one_shared_runner_serves_concurrent_runs():
             runs = [driver.submit(runner.map, "run", _negate, [(i + 100 * r,) for i in range(30)]) for r in range(3)]
             results = [f.result() for f in runs]
     assert results == [[-(i + 100 * r) for i in range(30)] for r in range(3)]
+
+
+def _blas_threads(_):
+    return _scheduler.blas_threads()
+
+
+def test_a_run_in_the_calling_process_runs_one_blas_thread_and_restores_them():
+    import numpy  # noqa: F401 - loads numpy's OpenBLAS
+
+    before = _scheduler.blas_threads()
+    if not before:
+        pytest.skip("no OpenBLAS found in this process")
+    _scheduler._set_blas_threads(2)  # a caller's setting that is not one
+    caller = _scheduler.blas_threads()  # (a single-threaded build stays at one)
+    assert 2 in caller.values()
+    try:
+        out = Runner("threads", workers=2).map("blas", _blas_threads, [(i,) for i in range(4)])
+        assert all(set(counts[path] for path in caller) == {1} for counts in out)  # one thread in tasks
+        after = _scheduler.blas_threads()
+        assert {path: after[path] for path in caller} == caller  # the caller's setting is back
+    finally:
+        _scheduler._set_blas_threads(before)
+    assert {path: n for path, n in _scheduler.blas_threads().items() if path in before} == before
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="OpenBLAS is found through /proc/self/maps")
+def test_worker_processes_run_one_blas_thread():
+    out = Runner("processes", workers=1).map("blas", _blas_threads, [(0,), (1,)])
+    assert all(counts and set(counts.values()) == {1} for counts in out)  # numpy's OpenBLAS at least

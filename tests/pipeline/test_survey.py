@@ -226,6 +226,37 @@ def test_new_and_changed_captures_run_alone(tmp_path, monkeypatch):
     assert [r for r in rows if r[0].endswith("cap1.tif")][-1][2].startswith("content changed")
 
 
+def test_the_next_capture_is_detected_while_one_writes_its_report(tmp_path, monkeypatch):
+    """--parallel 1 counts captures being detected, not captures writing their
+    report: with a report that takes a second, the next capture's detection
+    runs meanwhile, and no two detections ever overlap."""
+    import threading
+
+    from rsmb.pipeline import _report
+
+    references, night = _night(tmp_path, _scene(), bad=False)
+    spans, lock = {"detect": [], "report": []}, threading.Lock()
+
+    def timed(kind, func, pause=0.0):
+        def run(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                time.sleep(pause)
+                return func(*args, **kwargs)
+            finally:
+                with lock:
+                    spans[kind].append((start, time.perf_counter()))
+        return run
+
+    monkeypatch.setattr(survey_module, "detect", timed("detect", survey_module.detect))
+    monkeypatch.setattr(_report, "write_report", timed("report", _report.write_report, pause=1.0))
+    result = survey_module.survey(references, str(night / "**" / "*.tif"), tmp_path / "out", parallel=1)
+    assert result.done == 3 and len(spans["detect"]) == 3 and len(spans["report"]) == 3
+    detections = sorted(spans["detect"])
+    assert all(a[1] <= b[0] for a, b in zip(detections, detections[1:]))  # one at a time
+    assert any(r0 < d0 < r1 for d0, _ in detections for r0, r1 in spans["report"])
+
+
 def _capture_files(out):
     """The bytes of every file in the night's capture folders (not the ledger,
     nights/ or index.html: they record when each night ran), by path."""
