@@ -32,6 +32,7 @@ from ._oracle import ExactRowSolution, huber_objective, optimal_chi, row_objecti
 from ._posespace import PoseSpace
 from ._params import RegistrationParams, auto_step
 from ._register import Registration, register
+from ._reground import reground
 from ._rowsolve import solve_row_fast
 from ._scene import aerial_scene, paste_changes
 from ._slow import SlowPath, estimate_slow
@@ -40,7 +41,7 @@ from ._threshold import kapur_threshold, kapur_threshold_histogram
 
 #: Version of the kernels' results: raised whenever a change to ops alters what
 #: a run computes, so that ``--resume`` never mixes tiles of two versions.
-KERNEL_VERSION = 3
+KERNEL_VERSION = 4
 
 __all__ = [
     "KERNEL_VERSION",
@@ -65,6 +66,7 @@ __all__ = [
     "depth_layers",
     "Registration",
     "register",
+    "reground",
     "SlowPath",
     "estimate_slow",
     "auto_step",
