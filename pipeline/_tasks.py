@@ -180,7 +180,8 @@ def register_task(store, tile, camera, params, changes, prior=None):
                           reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
                           distorted_valid=dist_valid)
     layers = _depth_layers(result, reference, capture, camera, tile, params, changes)
-    score = np.where(result.valid, np.where(layers.parallax, 0.0, np.abs(layers.chi)), np.nan)  # NaN: unknown
+    score = ops.change_score(layers.chi, layers.registered, params=changes)
+    score = np.where(result.valid, np.where(layers.parallax, 0.0, score), np.nan)  # NaN: unknown
     residual = np.where(result.valid, distorted - layers.registered, 0.0)
     hist = ops.score_histogram(residual, score, result.valid)
     write_start = time.perf_counter()
