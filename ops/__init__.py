@@ -14,6 +14,7 @@ from ._changes import (
     ScoreHistogram,
     change_candidates,
     change_mask,
+    change_score,
     change_threshold,
     changes_to_reference,
     detect_changes,
@@ -33,6 +34,7 @@ from ._oracle import ExactRowSolution, huber_objective, optimal_chi, row_objecti
 from ._posespace import PoseSpace
 from ._params import RegistrationParams, auto_step
 from ._register import Registration, register
+from ._reground import reground
 from ._rowsolve import solve_row_fast
 from ._scene import aerial_scene, paste_changes
 from ._slow import SlowPath, estimate_slow
@@ -69,6 +71,7 @@ __all__ = [
     "depth_map",
     "Registration",
     "register",
+    "reground",
     "SlowPath",
     "estimate_slow",
     "auto_step",
@@ -81,6 +84,7 @@ __all__ = [
     "ChangeParams",
     "ChangeResult",
     "detect_changes",
+    "change_score",
     "ScoreHistogram",
     "score_histogram",
     "change_threshold",

@@ -1,6 +1,6 @@
 """From the change term to change masks in both grids (METHOD.md section 3, steps 4-5).
 
-The score of a pixel is ``|chi|``: the part of its residual that the warped and
+The score of a pixel starts from ``|chi|``: the part of its residual that the warped and
 blurred reference cannot explain beyond the Huber knee ``lambda_chi / 2``.
 
 Thresholds are computed from histograms that tiles can add up, so that a
@@ -13,6 +13,18 @@ mosaic gets one threshold for the whole image:
   scores, as in the paper, never below ``floor``.  On captures whose changes have
   very different contrasts it tends to split the changes themselves.
 - a number: a fixed score threshold.
+
+The score is ``|chi|`` less an *interpolation allowance*: the row solver
+renders sub-pixel poses by linear interpolation (bilinear pre-warps, weights
+shared between whole-pixel shifts), whose error is bounded by ``1/8`` of the
+image's second difference along each axis (``h^2 |f''| / 8`` at a half-pixel
+offset).  A real capture's optics interpolate differently, so at the sharp
+edges and thin lines of a real photograph the residual of a perfect
+registration reaches that bound; ``interpolation * (|f_xx| + |f_yy|)`` of the
+registered image is taken off ``|chi|`` (:func:`change_score`).  A new object
+has its contrast on its own pixels, where the reference is mostly smooth: it
+keeps its score.  (A misregistration leaves a residual that follows the first
+derivative, not the second: it is not hidden.)
 
 Pixels above ``hysteresis`` times the threshold that touch a pixel above it are
 kept too (this recovers the blurred borders of changed objects), then connected
@@ -31,7 +43,7 @@ from ._camera import pose_homographies
 from ._errors import ParameterError
 from ._threshold import kapur_threshold_histogram
 
-__all__ = ["ChangeParams", "ScoreHistogram", "score_histogram", "change_threshold", "residual_median",
+__all__ = ["ChangeParams", "ScoreHistogram", "score_histogram", "change_threshold", "residual_median", "change_score",
            "RESIDUAL_BINS", "SCORE_BINS", "change_candidates",
            "label_components", "keep_components", "fill_holes", "change_mask", "changes_to_reference",
            "ChangeResult", "detect_changes"]
@@ -73,6 +85,11 @@ class ChangeParams:
     layers : bool
         Test candidate changes against depth layers (:func:`ops.depth_layers`):
         one that registers at some relative depth is parallax, not change.
+    interpolation : float
+        The interpolation allowance of :func:`change_score`: this times the
+        registered image's absolute second differences along rows and
+        columns, summed.  ``1/8`` is the bound of linear interpolation's error
+        at a half-pixel offset; 0 disables it.
     """
 
     threshold: object = "noise"
@@ -83,6 +100,7 @@ class ChangeParams:
     half_max_window: int = 15
     half_max: float = 0.42
     layers: bool = True
+    interpolation: float = 0.125
 
     def __post_init__(self):
         t = self.threshold
@@ -101,6 +119,8 @@ class ChangeParams:
             raise ParameterError(f"hysteresis: expected a fraction in (0, 1], got {self.hysteresis}")
         if self.min_area < 0:
             raise ParameterError(f"min_area: expected >= 0 pixels, got {self.min_area}")
+        if not self.interpolation >= 0:
+            raise ParameterError(f"interpolation: expected a fraction >= 0, got {self.interpolation!r}")
 
     @property
     def margin(self):
@@ -178,6 +198,38 @@ def residual_median(counts):
     cum = np.cumsum(counts, axis=-1)
     index = (cum < 0.5 * cum[..., -1:]).sum(axis=-1)
     return _RESIDUAL_EDGES[np.minimum(index + 1, len(_RESIDUAL_EDGES) - 1)]
+
+
+def change_score(chi, registered, *, params=ChangeParams()):
+    """The change score: ``|chi|`` less the interpolation allowance
+    ``params.interpolation * (|f_xx| + |f_yy|)`` of the registered image ``f``
+    (second differences; see the module docstring), never below 0.
+
+    Parameters
+    ----------
+    chi : ndarray, shape (H, W)
+        The change term of eq. 13.
+    registered : ndarray, shape (H, W)
+        The registered image ``F w`` (NaN where unknown), same units as ``chi``.
+
+    Returns
+    -------
+    ndarray of float32, shape (H, W)
+        Local (3-pixel second differences, borders replicated): a window
+        (tile) gives the score of the whole image except on its outermost
+        pixels.
+    """
+    score = np.abs(np.asarray(chi, dtype=np.float32))
+    if params.interpolation <= 0:
+        return score
+    image = np.nan_to_num(np.asarray(registered, dtype=np.float32))
+    allowance = np.zeros_like(image)
+    for kernel in (_SECOND_DIFFERENCE, _SECOND_DIFFERENCE.T):
+        allowance += np.abs(cv2.filter2D(image, cv2.CV_32F, kernel, borderType=cv2.BORDER_REPLICATE))
+    return np.maximum(score - np.float32(params.interpolation) * allowance, np.float32(0.0))
+
+
+_SECOND_DIFFERENCE = np.array([[1.0, -2.0, 1.0]], np.float32)
 
 
 def change_candidates(score, threshold, *, params=ChangeParams()):
@@ -369,7 +421,7 @@ def detect_changes(registration, distorted, *, camera, params=ChangeParams()):
     -------
     ChangeResult
     """
-    score = np.abs(registration.chi)
+    score = change_score(registration.chi, registration.registered, params=params)
     residual = np.where(registration.valid, distorted - registration.registered, 0.0)
     threshold = change_threshold(score_histogram(residual, score, registration.valid), params=params)
     mask = change_mask(score, threshold, params=params)

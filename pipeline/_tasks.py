@@ -176,8 +176,13 @@ def register_task(store, tile, camera, params, changes, prior=None):
                           reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
                           distorted_valid=dist_valid, prior=prior, slow=_slow_prior(store, tile, params))
     tile.check_core(result.registered)
+    result = ops.reground(result, reference, capture, camera=camera, params=params,
+                          threshold=_tile_threshold(result, capture, changes), min_area=changes.min_area,
+                          reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
+                          distorted_valid=dist_valid)
     layers = _depth_layers(result, reference, capture, camera, tile, params, changes)
-    score = np.where(result.valid, np.where(layers.parallax, 0.0, np.abs(layers.chi)), np.nan)  # NaN: unknown
+    score = ops.change_score(layers.chi, layers.registered, params=changes)
+    score = np.where(result.valid, np.where(layers.parallax, 0.0, score), np.nan)  # NaN: unknown
     residual = np.where(result.valid, distorted - layers.registered, 0.0)
     hist = ops.score_histogram(residual, score, result.valid)
     write_start = time.perf_counter()
@@ -203,9 +208,7 @@ def _depth_layers(result, reference, capture, camera, tile, params, changes):
     registration as it is when ``changes.layers`` is off."""
     if not changes.layers:
         return ops.LayerResult(np.zeros(result.valid.shape, bool), result.registered, result.chi)
-    residual = np.where(result.valid, capture - result.registered, 0.0)
-    hist = ops.score_histogram(residual, np.abs(result.chi), result.valid)
-    threshold = ops.change_threshold(hist, params=changes)
+    threshold = _tile_threshold(result, capture, changes)
     windows = dict(reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
                    lambda_chi=params.lambda_chi)
     out = ops.depth_layers(result, reference, capture, camera=camera, threshold=threshold, **windows)
@@ -214,6 +217,13 @@ def _depth_layers(result, reference, capture, camera, tile, params, changes):
     out.registered, out.chi = dense.registered, dense.chi
     out.parallax |= dense.explained
     return out
+
+
+def _tile_threshold(result, capture, changes):
+    """The change threshold of the tile's own residuals (the mosaic's is not known yet)."""
+    residual = np.where(result.valid, capture - result.registered, 0.0)
+    hist = ops.score_histogram(residual, np.abs(result.chi), result.valid)
+    return ops.change_threshold(hist, params=changes)
 
 
 def _layer_table(components, tile):

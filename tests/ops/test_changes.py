@@ -10,8 +10,11 @@ from rsmb.ops import (
     ParameterError,
     RSMBError,
     change_mask,
+    change_score,
     change_threshold,
     changes_to_reference,
+    confusion,
+    optimal_chi,
     score_histogram,
 )
 from rsmb.ops._changes import _RESIDUAL_EDGES
@@ -303,3 +306,60 @@ def test_change_params_normalises_numbers():
 @pytest.mark.parametrize("threshold", [np.float32(0.2), np.int64(1)])
 def test_change_params_accepts_numpy_scalars(threshold):
     assert ChangeParams(threshold=threshold).threshold == pytest.approx(float(threshold))
+
+
+
+def _sharp_scene(seed=7):
+    """Bright and dark rectangles on grey with an optical blur of 0.7 px (the
+    edges of a real photograph), a flat field in the middle."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    scene = np.full((160, 160), 0.4, np.float32)
+    for _ in range(40):
+        r, c = rng.integers(0, 150, 2)
+        h, w = rng.integers(4, 30, 2)
+        scene[r:r + h, c:c + w] = rng.choice([0.1, 0.9])
+    scene[60:100, 60:100] = 0.4
+    return ndimage.gaussian_filter(scene, 0.7)
+
+
+def _rendered(scene, shift, order, with_object):
+    """``scene`` moved by ``shift`` px on both axes, interpolated with a spline
+    of ``order`` (1: the solver's linear interpolation; 3: a capture's own
+    optics), with or without a new object of contrast 0.3 on the flat field."""
+    from scipy import ndimage
+
+    out = ndimage.shift(scene, (shift, shift), order=order, mode="nearest").astype(np.float32)
+    truth = np.zeros(scene.shape, bool)
+    if with_object:
+        truth[72:88, 70:90] = True
+        out[truth] += 0.3
+    return out, truth
+
+
+def test_change_score_takes_the_interpolation_allowance_off_chi():
+    scene = _sharp_scene()
+    registered, _ = _rendered(scene, 0.5, 1, False)  # the right pose, rendered the solver's way
+    capture, truth = _rendered(scene, 0.5, 3, True)
+    chi = optimal_chi(capture - registered, lambda_chi=0.02)
+    plain = change_score(chi, registered, params=ChangeParams(interpolation=0.0))
+    np.testing.assert_allclose(plain, np.abs(chi), rtol=1e-6)
+    score = change_score(chi, registered)
+    assert score.dtype == np.float32 and (score >= 0).all() and (score <= plain + 1e-7).all()
+    inner = np.zeros_like(truth)
+    inner[74:86, 72:88] = True  # flat around: the new object keeps its score
+    np.testing.assert_allclose(score[inner], plain[inner], rtol=1e-6)
+    assert plain[~truth].max() > 0.05  # linear against cubic interpolation alone exceeds the threshold's floor
+    assert score[~truth].max() < 0.05
+    counts = confusion(change_mask(score, 0.05), truth)
+    assert confusion(change_mask(plain, 0.05), truth).precision < 0.8
+    assert counts.precision >= 0.95 and counts.recall >= 0.95, counts.as_dict()
+
+
+def test_interpolation_allowance_does_not_hide_a_misregistration():
+    scene = _sharp_scene()
+    registered, _ = _rendered(scene, 0.0, 1, False)
+    capture, truth = _rendered(scene, 0.5, 3, False)  # half a pixel off on both axes
+    chi = optimal_chi(capture - registered, lambda_chi=0.02)
+    assert change_score(chi, registered).max() > 0.1
