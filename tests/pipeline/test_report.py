@@ -214,3 +214,49 @@ def test_failed_rows_are_counted_in_the_summary_and_the_report(tmp_path, small_p
     assert result.failed_rows == int((states == 3).sum()) > 0
     page = write_report(tmp_path / "o.zarr").read_text()
     assert f"failed tile rows (no fit, or unconverged)</td><td class=\"num\">{result.failed_rows}<" in page
+
+
+# --------------------------------------------------------------------------- axes that are zero on every row
+
+
+def test_flat_axes_split_by_construction():
+    """An axis is flat when every finite value, fused and per tile, is zero."""
+    from rsmb.pipeline._report_figures import flat_axes_split
+
+    rows = np.arange(50, dtype=np.float64)
+    traj = np.zeros((50, 5))
+    traj[:, 0] = 0.1 * rows
+    traj[:, 2] = np.sin(rows)
+    per_tile = np.repeat(traj[:, None, :], 3, axis=1)
+    per_tile[7, 1, 3] = np.nan  # an unsolved row is not a value
+    assert flat_axes_split(traj, per_tile) == ([0, 2], [1, 3, 4])
+    per_tile[9, 2, 4] = 1e-9  # one tile column away from zero on one row
+    assert flat_axes_split(traj, per_tile) == ([0, 2, 4], [1, 3])
+    assert flat_axes_split(traj) == ([0, 2], [1, 3, 4])
+    assert flat_axes_split(np.zeros((50, 3))) == ([0], [1, 2])  # never no panel at all
+
+
+def test_report_names_flat_axes_instead_of_drawing_them(store, tmp_path):
+    """A store whose rx and ry are zero on every row: the trajectory figure has
+    no panel for them, the caption says so and the figure is shorter than with
+    rx drawn."""
+    import shutil
+
+    copy = tmp_path / "flat.zarr"
+    shutil.copytree(store, copy)
+    group = zarr.open_group(str(copy), mode="r+")
+    assert list(group["trajectory"].attrs["pose_axes"])[3:] == ["rx", "ry"]
+    traj, per_tile = group["trajectory"][:], group["tile_trajectory"][:]
+    traj[:, 3:], per_tile[..., 3:] = 0.0, 0.0
+    traj[:, 0] = np.linspace(-2.0, 2.0, traj.shape[0])
+    group["trajectory"][:], group["tile_trajectory"][:] = traj, per_tile
+    page = write_report(copy, tmp_path / "flat").read_text(encoding="utf-8")
+    assert "No panel for rx (deg), ry (deg): zero on every row" in page
+    _, flat_height = _png_size(tmp_path / "flat" / "trajectory.png")
+
+    per_tile[5, 0, 3] = 0.01  # rx moves in one tile on one row: drawn again
+    group["tile_trajectory"][:] = per_tile
+    page = write_report(copy, tmp_path / "rx").read_text(encoding="utf-8")
+    assert "No panel for ry (deg): zero on every row" in page
+    _, rx_height = _png_size(tmp_path / "rx" / "trajectory.png")
+    assert rx_height > flat_height
