@@ -27,7 +27,7 @@ _GRID_ALPHA = 0.35
 _MASK_ALPHA = 0.45
 
 _DPI = 100  # matplotlib figures: pixels per inch
-_PNG_LEVEL = 3  # zlib level of every PNG: level 6 costs more CPU for files hardly smaller
+_PNG_LEVEL = 2  # zlib level of every PNG: higher levels cost much more CPU on the photo-like overlay for a file hardly smaller
 
 
 def write_figures(group, attrs, out, factor):
@@ -109,6 +109,10 @@ def block_reduce(array, factor, how="mean"):
 
 def _reduce_band(block, factor, how):
     """Block-reduce a band whose row count is a multiple of ``factor`` except at the end."""
+    if how not in ("mean", "max"):
+        raise ParameterError(f"how: expected 'mean' or 'max', got {how!r}")
+    if factor == 1:  # every block is one pixel
+        return block
     rows, w = block.shape
     pr, pc = -rows % factor, -w % factor
     if pr or pc:
@@ -116,8 +120,6 @@ def _reduce_band(block, factor, how):
     cells = block.reshape(block.shape[0] // factor, factor, block.shape[1] // factor, factor)
     if how == "max":
         return np.fmax.reduce(np.fmax.reduce(cells, axis=3), axis=1)
-    if how != "mean":
-        raise ParameterError(f"how: expected 'mean' or 'max', got {how!r}")
     finite = np.isfinite(cells)
     total = np.where(finite, cells, 0.0).sum(axis=(1, 3), dtype=np.float64)
     count = finite.sum(axis=(1, 3))
@@ -150,8 +152,6 @@ def overlay_rgb(gray, mask, row_lines=(), col_lines=()):
     -------
     ndarray, uint8, shape (h, w, 3)
     """
-    from scipy import ndimage
-
     finite = np.isfinite(gray)
     lo, hi = np.percentile(gray[finite], [0.5, 99.5]) if finite.any() else (0.0, 1.0)
     g = np.clip((np.where(finite, gray, lo) - lo) / max(float(hi - lo), 1e-6), 0.0, 1.0).astype(np.float32)
@@ -163,25 +163,58 @@ def overlay_rgb(gray, mask, row_lines=(), col_lines=()):
     rgb[:, cols] = (1 - _GRID_ALPHA) * rgb[:, cols] + _GRID_ALPHA * _GRID_RGB
     changed = np.asarray(mask) > 0
     rgb[changed] = (1 - _MASK_ALPHA) * rgb[changed] + _MASK_ALPHA * _MASK_RGB
-    rgb[changed & ~ndimage.binary_erosion(changed, border_value=0)] = _EDGE_RGB
-    rgb[_rings(changed)] = _EDGE_RGB
+    rgb[_outlines(changed)] = _EDGE_RGB
     return (rgb * 255.0 + 0.5).astype(np.uint8)
 
 
-def _rings(changed, small=4):
+def _outlines(changed):
+    """Pixels drawn in the outline colour: each change's edge and the rings
+    around the tiny ones."""
+    return _edges(changed) | _rings(changed)
+
+
+def _edges(changed):
+    """Changed pixels with a 4-neighbour unchanged or outside the image (the
+    complement of a binary erosion by a cross, with shifted slices)."""
+    inner = changed.copy()
+    inner[1:] &= changed[:-1]
+    inner[:-1] &= changed[1:]
+    inner[:, 1:] &= changed[:, :-1]
+    inner[:, :-1] &= changed[:, 1:]
+    inner[[0, -1], :] = False
+    inner[:, [0, -1]] = False
+    return changed & ~inner
+
+
+def _rings(changed, small=4, many=64):
     """A ring around every component of at most ``small`` pixels, which would
-    otherwise be a dot in a downsampled overlay."""
+    otherwise be a dot in a downsampled overlay: the one-pixel border of the
+    component dilated twice, outside every change.
+
+    The dilations run in a window around each tiny component (or over the whole
+    image when there are more than ``many``); a ring lies within 3 px of its
+    component, inside the window, and a window's edge only loses pixels."""
     from scipy import ndimage
 
     labels, count = ndimage.label(changed)
     if count == 0:
         return np.zeros_like(changed)
     area = np.bincount(labels.ravel(), minlength=count + 1)
-    tiny = (area <= small)[labels] & changed
-    if not tiny.any():
+    tiny = np.nonzero(area[1:] <= small)[0] + 1
+    if tiny.size == 0:
         return np.zeros_like(changed)
-    inner = ndimage.binary_dilation(tiny, iterations=2)
-    return ndimage.binary_dilation(inner) & ~inner & ~changed
+    if tiny.size > many:
+        inner = ndimage.binary_dilation(np.isin(labels, tiny), iterations=2)
+        return ndimage.binary_dilation(inner) & ~inner & ~changed
+    objects = ndimage.find_objects(labels)
+    windows = [tuple(slice(max(0, s.start - 4), s.stop + 4) for s in objects[i - 1]) for i in tiny]
+    inner = np.zeros_like(changed)
+    for i, win in zip(tiny, windows):
+        inner[win] |= ndimage.binary_dilation(labels[win] == i, iterations=2)
+    ring = np.zeros_like(changed)
+    for win in windows:
+        ring[win] |= ndimage.binary_dilation(inner[win]) & ~inner[win] & ~changed[win]
+    return ring
 
 
 def _write_overlay(group, grid, factor, path):
@@ -200,7 +233,7 @@ def _write_overlay(group, grid, factor, path):
 #
 # Figures are laid out with fixed margins in pixels, sized from the font (no
 # constrained layout: its tight-bbox passes would cost more than the drawing),
-# and drawn once, by ``savefig``.
+# drawn once and written by pillow.
 
 
 def _font_px():
@@ -227,11 +260,26 @@ def _add_axes(fig, left, top, width, height, **kwargs):
     return fig.add_axes((left / w, 1.0 - (top + height) / h, width / w, height / h), **kwargs)
 
 
+def _render(fig):
+    """Draw ``fig`` once and return its pixels, uint8 RGB, shape (height, width, 3).
+
+    The figure is left to the garbage collector: ``fig.clear()`` would rebuild
+    every axes' ticks only to drop them."""
+    fig.canvas.draw()
+    return np.array(np.asarray(fig.canvas.buffer_rgba())[..., :3])
+
+
+def _write_png(rgb, path):
+    """Write uint8 RGB pixels as a PNG (RGB, not matplotlib's RGBA: a quarter
+    fewer bytes to compress); return the figure entry ``{"size": (w, h)}``."""
+    from PIL import Image
+
+    Image.fromarray(rgb, mode="RGB").save(path, compress_level=_PNG_LEVEL)
+    return {"size": (rgb.shape[1], rgb.shape[0])}
+
+
 def _save(fig, path):
-    fig.savefig(path, dpi=_DPI, pil_kwargs={"compress_level": _PNG_LEVEL})
-    w, h = fig.canvas.get_width_height()
-    fig.clear()
-    return {"size": (w, h)}
+    return _write_png(_render(fig), path)
 
 
 # --------------------------------------------------------------------------- trajectory
@@ -455,21 +503,15 @@ def _write_score(group, attrs, factor, path):
     """The block-maximum score, one value per PNG pixel, coloured with numpy
     (matplotlib would resample it), in a matplotlib frame of axes, title and
     colorbar drawn around an empty box the image is pasted into."""
-    from PIL import Image
-
     score = block_reduce(group["change_score"], factor, "max")
     threshold = (attrs.get("summary") or {}).get("threshold")
     h, w = score.shape
     vmax = _score_vmax(score, threshold)
     fig, box = _score_frame(h, w, factor, vmax, threshold)
-    fig.canvas.draw()
-    rgba = np.array(fig.canvas.buffer_rgba())
+    rgb = _render(fig)
     left, top = box
-    rgba[top:top + h, left:left + w] = _score_rgba(score, vmax)
-    width, height = fig.canvas.get_width_height()
-    fig.clear()
-    Image.fromarray(rgba[..., :3], mode="RGB").save(path, compress_level=_PNG_LEVEL)
-    return {"size": (width, height), "vmax": vmax}
+    rgb[top:top + h, left:left + w] = _score_rgba(score, vmax)[..., :3]
+    return {**_write_png(rgb, path), "vmax": vmax}
 
 
 def _score_frame(h, w, factor, vmax, threshold):

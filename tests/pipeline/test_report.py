@@ -260,3 +260,39 @@ def test_report_names_flat_axes_instead_of_drawing_them(store, tmp_path):
     assert "No panel for ry (deg): zero on every row" in page
     _, rx_height = _png_size(tmp_path / "rx" / "trajectory.png")
     assert rx_height > flat_height
+
+
+def _outlines_whole_image(changed, small=4):
+    """The overlay's outline pixels by their definition, on the whole image:
+    the complement of a binary erosion, and rings from whole-image dilations."""
+    from scipy import ndimage
+
+    edge = changed & ~ndimage.binary_erosion(changed, border_value=0)
+    labels, count = ndimage.label(changed)
+    area = np.bincount(labels.ravel(), minlength=count + 1)
+    inner = ndimage.binary_dilation((area <= small)[labels] & changed, iterations=2)
+    return edge | (ndimage.binary_dilation(inner) & ~inner & ~changed)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("dots", [0, 3, 200])
+def test_outlines_in_windows_equal_whole_image(seed, dots):
+    """Edges by shifted slices and rings dilated in windows around the tiny
+    changes equal the whole-image morphology: changes on the border, tiny ones
+    close to each other and to large ones, none, and more than the per-window
+    limit."""
+    from rsmb.pipeline._report_figures import _outlines
+
+    rng = np.random.default_rng(seed)
+    changed = np.zeros((90, 70), bool)
+    for _ in range(6):
+        r, c, h, w = rng.integers(0, 90), rng.integers(0, 70), rng.integers(1, 12), rng.integers(1, 12)
+        changed[r:r + h, c:c + w] = True
+    changed[rng.integers(0, 90), 69] = True  # a tiny change on the border
+    for r, c in zip(rng.integers(0, 90, dots), rng.integers(0, 70, dots)):
+        changed[r, c] = True
+    np.testing.assert_array_equal(_outlines(changed), _outlines_whole_image(changed))
+    pair = np.zeros_like(changed)
+    pair[40, 30] = pair[40, 34] = True  # two dots whose rings overlap
+    np.testing.assert_array_equal(_outlines(pair), _outlines_whole_image(pair))
+    assert not _outlines(np.zeros_like(changed)).any()
