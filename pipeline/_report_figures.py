@@ -359,6 +359,7 @@ def _trajectory_panel(ax, rows, fused, per_tile, colors, edges):
     """One axis: the tile columns' paths as one line collection, the fused path
     on top, tile-row boundaries dashed; limits set here, no autoscaling."""
     from matplotlib.collections import LineCollection
+    from matplotlib.ticker import MaxNLocator
 
     if per_tile is not None and per_tile.shape[1]:
         segments = [np.column_stack([rows, per_tile[:, tx]]) for tx in range(per_tile.shape[1])]
@@ -369,6 +370,7 @@ def _trajectory_panel(ax, rows, fused, per_tile, colors, edges):
         ax.vlines(edges, 0.0, 1.0, transform=ax.get_xaxis_transform(), colors="0.45", lw=0.8, linestyles="--")
     ax.set_xlim(rows[0], max(rows[-1], rows[0] + 1.0))
     ax.set_ylim(*_padded_range(fused if per_tile is None else np.concatenate([fused, per_tile.ravel()])))
+    ax.yaxis.set_major_locator(MaxNLocator(nbins=5, steps=[1, 2, 2.5, 5, 10]))  # 4 to 6 ticks: each is costly to draw
     ax.grid(True, color="0.9", lw=0.6)
 
 
