@@ -56,7 +56,7 @@ def write_report(store, out_dir=None, *, max_pixels=DEFAULT_MAX_PIXELS, overwrit
     max_pixels : int
         Most pixels of a downsampled mosaic: ``overlay.png`` holds at most this
         many; the score figure shows at most this many (and at most 1024 x 1024,
-        which is what its axes can display).
+        one value per PNG pixel).
     overwrite : bool
         Write into an existing non-empty directory, replacing the report files.
 

@@ -16,7 +16,7 @@ import numpy as np
 from rsmb.ops import ParameterError
 
 FIGURES = ("overlay.png", "trajectory.png", "gain.png", "agreement.png", "change_score.png")
-_SCORE_PIXELS = 1024 * 1024  # the score figure shows about this many pixels; more would only be resampled
+_SCORE_SIDE = 1024  # the score figure shows a value per PNG pixel (or a square of them), at most this many a side
 
 # overlay colours, RGB in [0, 1]
 _NAN_RGB = np.array([0.16, 0.18, 0.32])
@@ -27,7 +27,8 @@ _GRID_ALPHA = 0.35
 _MASK_ALPHA = 0.45
 
 _DPI = 100  # matplotlib figures: pixels per inch
-_PNG_LEVEL = 2  # zlib level of every PNG: higher levels cost much more CPU on the photo-like overlay for a file hardly smaller
+# zlib level of every PNG: higher levels cost much more CPU on the photo-like overlay for a file hardly smaller
+_PNG_LEVEL = 2
 
 
 def write_figures(group, attrs, out, factor):
@@ -54,7 +55,7 @@ def write_figures(group, attrs, out, factor):
         (its gain is in the summary; one tile agrees with itself).
     score_factor : int
         Downsampling factor of the score figure (at least ``factor``; the figure
-        shows at most about 1024 x 1024 values).
+        shows at most 1024 values a side).
     """
     figures = {}
     figures["overlay.png"] = _write_overlay(group, attrs["tile_grid"], factor, out / "overlay.png")
@@ -64,7 +65,7 @@ def write_figures(group, attrs, out, factor):
         if "tile_agreement" in group:
             figures["agreement.png"] = _write_agreement(group, attrs, out / "agreement.png")
     shape = tuple(group["change_score"].shape)
-    score_factor = max(factor, downsample_factor(shape, _SCORE_PIXELS))
+    score_factor = max(factor, math.ceil(shape[0] / _SCORE_SIDE), math.ceil(shape[1] / _SCORE_SIDE))
     figures["change_score.png"] = _write_score(group, attrs, score_factor, out / "change_score.png")
     return figures, score_factor
 
@@ -218,15 +219,12 @@ def _rings(changed, small=4, many=64):
 
 
 def _write_overlay(group, grid, factor, path):
-    from PIL import Image
-
     mask = block_reduce(group["change_mask"], factor, "max")
     gray = block_reduce(group["registered"], factor, "mean")
     h, w = gray.shape
     rgb = overlay_rgb(gray, mask, _grid_lines(grid["row_edges"], factor, h),
                       _grid_lines(grid["col_edges"], factor, w))
-    Image.fromarray(rgb, mode="RGB").save(path, compress_level=_PNG_LEVEL)
-    return {"size": (w, h)}
+    return _write_png(rgb, path)
 
 
 # --------------------------------------------------------------------------- matplotlib figures
@@ -337,7 +335,8 @@ def flat_axes_split(traj, per_tile=None):
         and per tile, is zero.  ``drawn`` is never empty: when every axis is
         flat, the first one is drawn.
     """
-    values = traj if per_tile is None else np.concatenate([traj[:, None, :], per_tile], axis=1).reshape(-1, traj.shape[1])
+    values = traj if per_tile is None else np.concatenate([traj[:, None, :], per_tile], axis=1)
+    values = values.reshape(-1, traj.shape[1])
     zero = [bool(np.all(np.where(np.isfinite(values[:, d]), values[:, d], 0.0) == 0.0)) for d in range(traj.shape[1])]
     drawn = [d for d in range(traj.shape[1]) if not zero[d]] or [0]
     return drawn, [d for d in range(traj.shape[1]) if d not in drawn]
@@ -421,7 +420,8 @@ def _tile_map(values, *, title, label, fmt, cmap, vmin=None, vmax=None, marked=(
     width = round(_DPI * min(11.0, max(6.4, 0.95 * nx + 2.6)))
     height = round(_DPI * min(10.0, max(3.6, 0.8 * ny + 1.8)))
     legend = bool(marked and marked_label)
-    left, top, bottom, bar_w, bar_room = 5.0 * fs, 2.4 * fs, 3.4 * fs + (1.6 * fs if legend else 0.0), 0.9 * fs, 7.5 * fs
+    left, top, bar_w, bar_room = 5.0 * fs, 2.4 * fs, 0.9 * fs, 7.5 * fs
+    bottom = 3.4 * fs + (1.6 * fs if legend else 0.0)
     fig = _figure(width, height)
     ax = _add_axes(fig, left, top, width - left - bar_room - bar_w - 1.2 * fs, height - top - bottom)
     cax = _add_axes(fig, width - bar_room - bar_w, top, bar_w, height - top - bottom)
@@ -502,23 +502,26 @@ def _score_vmax(score, threshold):
 
 
 def _write_score(group, attrs, factor, path):
-    """The block-maximum score, one value per PNG pixel, coloured with numpy
-    (matplotlib would resample it), in a matplotlib frame of axes, title and
-    colorbar drawn around an empty box the image is pasted into."""
+    """The block-maximum score, one value per PNG pixel (a square of ``zoom``
+    pixels when the map is small), coloured with numpy (matplotlib would
+    resample it), in a matplotlib frame of axes, title and colorbar drawn
+    around an empty box the image is pasted into."""
     score = block_reduce(group["change_score"], factor, "max")
     threshold = (attrs.get("summary") or {}).get("threshold")
-    h, w = score.shape
+    zoom = max(1, min(512 // min(score.shape), _SCORE_SIDE // max(score.shape)))
     vmax = _score_vmax(score, threshold)
-    fig, box = _score_frame(h, w, factor, vmax, threshold)
+    pixels = _score_rgba(score, vmax)[..., :3].repeat(zoom, axis=0).repeat(zoom, axis=1)
+    h, w = pixels.shape[:2]
+    fig, (left, top) = _score_frame(h, w, factor, zoom, vmax, threshold)
     rgb = _render(fig)
-    left, top = box
-    rgb[top:top + h, left:left + w] = _score_rgba(score, vmax)[..., :3]
+    rgb[top:top + h, left:left + w] = pixels
     return {**_write_png(rgb, path), "vmax": vmax}
 
 
-def _score_frame(h, w, factor, vmax, threshold):
+def _score_frame(h, w, factor, zoom, vmax, threshold):
     """Figure with a transparent ``w`` x ``h`` px axes box (1 px inside its
-    spines) in full-resolution pixel coordinates, and the colorbar.
+    spines) in full-resolution pixel coordinates (a score value is ``factor``
+    of them a side and ``zoom`` figure pixels), and the colorbar.
 
     Returns the figure and the box's top-left corner ``(left, top)``, pixels
     from the figure's top-left corner."""
@@ -527,18 +530,21 @@ def _score_frame(h, w, factor, vmax, threshold):
     from matplotlib.colors import Normalize
 
     fs = _font_px()
-    left, top, bottom, bar_w, bar_room = round(5.5 * fs), round(2.4 * fs), round(3.4 * fs), round(1.4 * fs), round(7.0 * fs)
+    left, top, bottom = round(5.5 * fs), round(2.4 * fs), round(3.4 * fs)
+    bar_w, bar_room = round(1.4 * fs), round(7.0 * fs)
+    bar_h = max(h + 2, round(29 * fs))  # room for the colorbar's label beside a short image
     width = max(left + w + 2 + round(1.6 * fs) + bar_w + bar_room, 640)
-    height = max(top + h + 2 + bottom, 240)
+    height = top + max(h + 2 + bottom, bar_h + round(1.0 * fs))
     fig = _figure(width, height)
     ax = _add_axes(fig, left - 1, top - 1, w + 2, h + 2)
     ax.patch.set_visible(False)
-    ax.set_xlim(-0.5 - factor, w * factor - 0.5 + factor)
-    ax.set_ylim(h * factor - 0.5 + factor, -0.5 - factor)
+    scale = factor / zoom  # full-resolution pixels per figure pixel
+    ax.set_xlim(-0.5 - scale, w * scale - 0.5 + scale)
+    ax.set_ylim(h * scale - 0.5 + scale, -0.5 - scale)
     ax.set_xlabel("column (px)")
     ax.set_ylabel("row (px)")
     ax.set_title("Change score" + (f" (block maximum of {factor} x {factor} px)" if factor > 1 else ""))
-    cax = _add_axes(fig, left + w + 2 + round(1.6 * fs), top - 1, bar_w, h + 2)
+    cax = _add_axes(fig, left + w + 2 + round(1.6 * fs), top - 1, bar_w, bar_h)
     label = "change score (intensity units)" + ("; cyan line: threshold" if threshold is not None else "")
     bar = fig.colorbar(ScalarMappable(Normalize(0.0, vmax), colormaps["inferno"]), cax=cax, label=label,
                        extend="max")

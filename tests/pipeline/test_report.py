@@ -296,3 +296,26 @@ def test_outlines_in_windows_equal_whole_image(seed, dots):
     pair[40, 30] = pair[40, 34] = True  # two dots whose rings overlap
     np.testing.assert_array_equal(_outlines(pair), _outlines_whole_image(pair))
     assert not _outlines(np.zeros_like(changed)).any()
+
+
+def test_score_values_are_pasted_pixel_for_pixel(tmp_path):
+    """A small score map is drawn without resampling: each value is a square
+    of ``zoom`` PNG pixels of exactly its colormap colour."""
+    from matplotlib import colormaps
+    from scipy import ndimage
+
+    from rsmb.pipeline._report_figures import _write_score
+
+    score = np.zeros((40, 60), np.float32)
+    score[10:20, 30:50] = 0.37
+    entry = _write_score({"change_score": score}, {"summary": {"threshold": 0.25}}, 1, tmp_path / "s.png")
+    assert entry["vmax"] == pytest.approx(0.5)  # twice the threshold, above every score
+    rgb = np.asarray(Image.open(tmp_path / "s.png").convert("RGB"))
+    assert (rgb.shape[1], rgb.shape[0]) == entry["size"]
+    zoom = 512 // 40
+    colour = np.array(colormaps["inferno"](np.float32(0.37) / np.float32(0.5), bytes=True)[:3])
+    labels, _ = ndimage.label((rgb == colour).all(axis=-1))
+    sizes = [(s[0].stop - s[0].start, s[1].stop - s[1].start) for s in ndimage.find_objects(labels)]
+    assert (10 * zoom, 20 * zoom) in sizes
+    block = labels == 1 + sizes.index((10 * zoom, 20 * zoom))
+    assert block.sum() == 10 * zoom * 20 * zoom  # a full rectangle
