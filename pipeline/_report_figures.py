@@ -332,12 +332,14 @@ def flat_axes_split(traj, per_tile=None):
     -------
     drawn, flat : list of int
         Axis indices; ``flat`` holds the axes whose every finite value, fused
-        and per tile, is zero.  ``drawn`` is never empty: when every axis is
+        and per tile, is zero (and that have one: an axis never solved is
+        drawn, empty).  ``drawn`` is never empty: when every axis is
         flat, the first one is drawn.
     """
     values = traj if per_tile is None else np.concatenate([traj[:, None, :], per_tile], axis=1)
     values = values.reshape(-1, traj.shape[1])
-    zero = [bool(np.all(np.where(np.isfinite(values[:, d]), values[:, d], 0.0) == 0.0)) for d in range(traj.shape[1])]
+    finite = np.isfinite(values)
+    zero = [bool(finite[:, d].any() and np.all(values[finite[:, d], d] == 0.0)) for d in range(traj.shape[1])]
     drawn = [d for d in range(traj.shape[1]) if not zero[d]] or [0]
     return drawn, [d for d in range(traj.shape[1]) if d not in drawn]
 

@@ -234,6 +234,9 @@ def test_flat_axes_split_by_construction():
     assert flat_axes_split(traj, per_tile) == ([0, 2, 4], [1, 3])
     assert flat_axes_split(traj) == ([0, 2], [1, 3, 4])
     assert flat_axes_split(np.zeros((50, 3))) == ([0], [1, 2])  # never no panel at all
+    unsolved = traj.copy()
+    unsolved[:, 1] = np.nan  # no value at all is not zero: drawn (empty)
+    assert flat_axes_split(unsolved) == ([0, 1, 2], [3, 4])
 
 
 def test_report_names_flat_axes_instead_of_drawing_them(store, tmp_path):
