@@ -8,11 +8,14 @@ JavaScript, no network.  Figures:
     grid drawn faintly; rendered pixel for pixel at the downsampled size, so
     the file never holds more than ``max_pixels`` pixels.
 ``trajectory.png``
-    Per-row pose, one panel per axis: the fused path and each tile column's own.
+    Per-row pose, one panel per axis: the fused path and each tile column's own;
+    an axis that is zero on every row gets no panel, only a note (figure and
+    caption).
 ``gain.png``, ``agreement.png``
     Per-tile maps with their values written in the cells.
 ``change_score.png``
-    The change score, downsampled, with the threshold marked on the colorbar.
+    The change score, downsampled, one value per PNG pixel, with the threshold
+    marked on the colorbar.
 
 The figures and the block reduction that keeps them small are
 :mod:`._report_figures`; the page is :mod:`._report_html`.
@@ -53,7 +56,7 @@ def write_report(store, out_dir=None, *, max_pixels=DEFAULT_MAX_PIXELS, overwrit
     max_pixels : int
         Most pixels of a downsampled mosaic: ``overlay.png`` holds at most this
         many; the score figure shows at most this many (and at most 1024 x 1024,
-        which is what its axes can display).
+        one value per PNG pixel).
     overwrite : bool
         Write into an existing non-empty directory, replacing the report files.
 

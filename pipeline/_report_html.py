@@ -146,8 +146,10 @@ def _geo_section(attrs):
     return "<h2>Georeferencing</h2>" + _table([cells for _, _, cells in rows], ["attribute", "value"])
 
 
-def _captions(attrs, factor, score_factor):
+def _captions(attrs, factor, score_factor, flat_axes=()):
     s = attrs.get("summary") or {}
+    flat = (f" No panel for {', '.join(flat_axes)}: zero on every row, fused and in every tile."
+            if flat_axes else "")
     tile = attrs["tile_grid"]["tile"]
     tol = (attrs.get("parameters") or {}).get("agreement")
     down = (f"Downsampled by {factor} (block mean of the image, block maximum of the mask, so that small changes "
@@ -168,7 +170,7 @@ def _captions(attrs, factor, score_factor):
         "overlay.png": overlay,
         "trajectory.png": "Per-row camera pose in global pose coordinates, one panel per axis. Black: the fused "
                           "trajectory (median over tiles of solved rows); thin coloured lines: each tile column's "
-                          "own estimate; dashed verticals: tile-row boundaries.",
+                          "own estimate; dashed verticals: tile-row boundaries." + flat,
         "gain.png": "Illumination gain of the capture against the reference, one value per tile.",
         "agreement.png": agreement,
         "change_score.png": score,
@@ -202,7 +204,8 @@ def html_page(store, attrs, group, figures, factor, score_factor):
         f"<h1>rsmb report: {_esc(store.name)}</h1>", f'<p class="meta">{meta}</p>',
         "<h2>Inputs</h2>", _inputs_table(attrs),
         "<h2>Summary</h2>", _summary_table(summary), _row_state_table(group),
-        "<h2>Figures</h2>", _figures_html(figures, _captions(attrs, factor, score_factor),
+        "<h2>Figures</h2>", _figures_html(figures, _captions(attrs, factor, score_factor,
+                                                       figures.get("trajectory.png", {}).get("flat_axes", ())),
                                              list(attrs.get("tile_grid", {}).get("tiles", [])) == [1, 1]),
         "<h2>Timings</h2>", _timings_table(summary.get("timings") or {}),
         "<h2>Parameters</h2>", _table(param_rows, ["parameter", "value"]),

@@ -214,3 +214,111 @@ def test_failed_rows_are_counted_in_the_summary_and_the_report(tmp_path, small_p
     assert result.failed_rows == int((states == 3).sum()) > 0
     page = write_report(tmp_path / "o.zarr").read_text()
     assert f"failed tile rows (no fit, or unconverged)</td><td class=\"num\">{result.failed_rows}<" in page
+
+
+# --------------------------------------------------------------------------- axes that are zero on every row
+
+
+def test_flat_axes_split_by_construction():
+    """An axis is flat when every finite value, fused and per tile, is zero."""
+    from rsmb.pipeline._report_figures import flat_axes_split
+
+    rows = np.arange(50, dtype=np.float64)
+    traj = np.zeros((50, 5))
+    traj[:, 0] = 0.1 * rows
+    traj[:, 2] = np.sin(rows)
+    per_tile = np.repeat(traj[:, None, :], 3, axis=1)
+    per_tile[7, 1, 3] = np.nan  # an unsolved row is not a value
+    assert flat_axes_split(traj, per_tile) == ([0, 2], [1, 3, 4])
+    per_tile[9, 2, 4] = 1e-9  # one tile column away from zero on one row
+    assert flat_axes_split(traj, per_tile) == ([0, 2, 4], [1, 3])
+    assert flat_axes_split(traj) == ([0, 2], [1, 3, 4])
+    assert flat_axes_split(np.zeros((50, 3))) == ([0], [1, 2])  # never no panel at all
+    unsolved = traj.copy()
+    unsolved[:, 1] = np.nan  # no value at all is not zero: drawn (empty)
+    assert flat_axes_split(unsolved) == ([0, 1, 2], [3, 4])
+
+
+def test_report_names_flat_axes_instead_of_drawing_them(store, tmp_path):
+    """A store whose rx and ry are zero on every row: the trajectory figure has
+    no panel for them, the caption says so and the figure is shorter than with
+    rx drawn."""
+    import shutil
+
+    copy = tmp_path / "flat.zarr"
+    shutil.copytree(store, copy)
+    group = zarr.open_group(str(copy), mode="r+")
+    assert list(group["trajectory"].attrs["pose_axes"])[3:] == ["rx", "ry"]
+    traj, per_tile = group["trajectory"][:], group["tile_trajectory"][:]
+    traj[:, 3:], per_tile[..., 3:] = 0.0, 0.0
+    traj[:, 0] = np.linspace(-2.0, 2.0, traj.shape[0])
+    group["trajectory"][:], group["tile_trajectory"][:] = traj, per_tile
+    page = write_report(copy, tmp_path / "flat").read_text(encoding="utf-8")
+    assert "No panel for rx (deg), ry (deg): zero on every row" in page
+    _, flat_height = _png_size(tmp_path / "flat" / "trajectory.png")
+
+    per_tile[5, 0, 3] = 0.01  # rx moves in one tile on one row: drawn again
+    group["tile_trajectory"][:] = per_tile
+    page = write_report(copy, tmp_path / "rx").read_text(encoding="utf-8")
+    assert "No panel for ry (deg): zero on every row" in page
+    _, rx_height = _png_size(tmp_path / "rx" / "trajectory.png")
+    assert rx_height > flat_height
+
+
+def _outlines_whole_image(changed, small=4):
+    """The overlay's outline pixels by their definition, on the whole image:
+    the complement of a binary erosion, and rings from whole-image dilations."""
+    from scipy import ndimage
+
+    edge = changed & ~ndimage.binary_erosion(changed, border_value=0)
+    labels, count = ndimage.label(changed)
+    area = np.bincount(labels.ravel(), minlength=count + 1)
+    inner = ndimage.binary_dilation((area <= small)[labels] & changed, iterations=2)
+    return edge | (ndimage.binary_dilation(inner) & ~inner & ~changed)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("dots", [0, 3, 200])
+def test_outlines_in_windows_equal_whole_image(seed, dots):
+    """Edges by shifted slices and rings dilated in windows around the tiny
+    changes equal the whole-image morphology: changes on the border, tiny ones
+    close to each other and to large ones, none, and more than the per-window
+    limit."""
+    from rsmb.pipeline._report_figures import _outlines
+
+    rng = np.random.default_rng(seed)
+    changed = np.zeros((90, 70), bool)
+    for _ in range(6):
+        r, c, h, w = rng.integers(0, 90), rng.integers(0, 70), rng.integers(1, 12), rng.integers(1, 12)
+        changed[r:r + h, c:c + w] = True
+    changed[rng.integers(0, 90), 69] = True  # a tiny change on the border
+    for r, c in zip(rng.integers(0, 90, dots), rng.integers(0, 70, dots)):
+        changed[r, c] = True
+    np.testing.assert_array_equal(_outlines(changed), _outlines_whole_image(changed))
+    pair = np.zeros_like(changed)
+    pair[40, 30] = pair[40, 34] = True  # two dots whose rings overlap
+    np.testing.assert_array_equal(_outlines(pair), _outlines_whole_image(pair))
+    assert not _outlines(np.zeros_like(changed)).any()
+
+
+def test_score_values_are_pasted_pixel_for_pixel(tmp_path):
+    """A small score map is drawn without resampling: each value is a square
+    of ``zoom`` PNG pixels of exactly its colormap colour."""
+    from matplotlib import colormaps
+    from scipy import ndimage
+
+    from rsmb.pipeline._report_figures import _write_score
+
+    score = np.zeros((40, 60), np.float32)
+    score[10:20, 30:50] = 0.37
+    entry = _write_score({"change_score": score}, {"summary": {"threshold": 0.25}}, 1, tmp_path / "s.png")
+    assert entry["vmax"] == pytest.approx(0.5)  # twice the threshold, above every score
+    rgb = np.asarray(Image.open(tmp_path / "s.png").convert("RGB"))
+    assert (rgb.shape[1], rgb.shape[0]) == entry["size"]
+    zoom = 512 // 40
+    colour = np.array(colormaps["inferno"](np.float32(0.37) / np.float32(0.5), bytes=True)[:3])
+    labels, _ = ndimage.label((rgb == colour).all(axis=-1))
+    sizes = [(s[0].stop - s[0].start, s[1].stop - s[1].start) for s in ndimage.find_objects(labels)]
+    assert (10 * zoom, 20 * zoom) in sizes
+    block = labels == 1 + sizes.index((10 * zoom, 20 * zoom))
+    assert block.sum() == 10 * zoom * 20 * zoom  # a full rectangle
