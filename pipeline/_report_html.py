@@ -197,7 +197,9 @@ def html_page(store, attrs, group, figures, factor, score_factor):
     summary = attrs.get("summary") or {}
     params = attrs.get("parameters") or {}
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    meta = (f"Store <code>{_esc(store.resolve())}</code> &middot; rsmb {_esc(attrs.get('rsmb_version', '?'))} "
+    # where the store lives: a survey builds it aside and records its final place
+    location = summary.get("output") or store.resolve()
+    meta = (f"Store <code>{_esc(location)}</code> &middot; rsmb {_esc(attrs.get('rsmb_version', '?'))} "
             f"&middot; scheduler {_esc(attrs.get('scheduler', '?'))} &middot; report written {now}")
     param_rows = [[f"<code>{_esc(k)}</code>", _fmt(v)] for k, v in _flatten(params)]
     sections = [

@@ -132,6 +132,8 @@ def test_each_capture_folder_holds_its_products(first_night):
             assert (ds.nodata == nodata) if nodata is not None else np.isnan(ds.nodata)
             assert ds.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"
     assert attrs["summary"]["output"] == str(folder / "changes.zarr")
+    page = (folder / "report" / "index.html").read_text()  # built aside, it names where the store ended up
+    assert f"Store <code>{folder / 'changes.zarr'}</code>" in page and ".partial" not in page
 
 
 def test_the_products_are_the_stores_kept_components(first_night):
