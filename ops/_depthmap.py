@@ -86,7 +86,7 @@ class DepthMapResult:
 
 
 def depth_map(registration, reference, distorted, *, camera, threshold, reference_origin_yx=(0, 0),
-              distorted_origin_yx=(0, 0), lambda_chi=0.02, params=None):
+              distorted_origin_yx=(0, 0), lambda_chi=0.02, params=None, allowed=None):
     """Re-render a registration per pixel at the depth that explains it best.
 
     Parameters
@@ -106,6 +106,8 @@ def depth_map(registration, reference, distorted, *, camera, threshold, referenc
     lambda_chi : float
         eq. 13's weight of ``||chi||_1``, for the change term of re-rendered pixels.
     params : DepthMapParams, optional
+    allowed : ndarray of bool, shape (H, W), optional
+        Only these pixels may take a depth (default: all).
 
     Returns
     -------
@@ -120,6 +122,8 @@ def depth_map(registration, reference, distorted, *, camera, threshold, referenc
     valid = registration.valid & np.isfinite(base)
     residual = np.where(valid, np.abs(g - base), 0.0).astype(np.float32)
     active = _active(residual, valid, tau, params.window)
+    if allowed is not None:
+        active &= np.asarray(allowed, bool)
     if not active.any() or not tau > 0:
         return out
     rows = _RowPoses.of(registration, g.shape[0])

@@ -15,7 +15,10 @@ Rule: a round is kept only when eq. 13's total objective of the final model
 ``lambda_w`` times the weights' sum, over the pixels both models cover)
 decreases; the first round that does not is dropped and the rounds stop.
 Pixels of components found to be depth layers are left out of the re-solve
-(the depth map does not hold their depth).  Only tiles whose depth map took a
+(the depth map does not hold their depth).  Later rounds' depth maps may give
+a depth only to pixels the first one gave one (with the plane's weights): the
+rows fitted to the depths taken would otherwise make a new object that took a
+depth by chance more consistent with it, round after round.  Only tiles whose depth map took a
 depth on at least :attr:`AlternateParams.min_share` of their pixels pay for
 it, and only rows holding such pixels are solved again.
 """
@@ -93,17 +96,19 @@ def depth_step(registration, reference, distorted, *, camera, threshold, space, 
     g = np.asarray(distorted, np.float32)
     layers, dense = _one_step(registration, reference, g, windows)
     info = {"rounds": 0, "objectives": [], "rows": 0}
-    taken = dense.inverse_depth != 1.0
+    taken = allowed = dense.inverse_depth != 1.0
     if params.rounds <= 0 or taken.sum() < params.min_share * max(int(registration.valid.sum()), 1):
         return layers, dense, info
     objective = _objective(registration, layers.registered, g, lambda_w, lambda_chi)
     info["objectives"].append(objective[0])
     for _ in range(params.rounds):
         rows = np.nonzero(taken.any(axis=1))[0]
-        moved = _resolve_rows(registration, reference, g, dense.inverse_depth, layers.parallax & ~dense.explained,
+        unexplained = ~(np.abs(g - layers.registered) <= threshold)  # change candidates: no evidence of motion
+        moved = _resolve_rows(registration, reference, g, dense.inverse_depth,
+                              (layers.parallax & ~dense.explained) | unexplained,
                               rows, camera, space, lambda_w, lambda_chi, reference_origin_yx, distorted_origin_yx,
                               params)
-        new_layers, new_dense = _one_step(moved, reference, g, windows)
+        new_layers, new_dense = _one_step(moved, reference, g, windows, allowed)
         new = _objective(moved, new_layers.registered, g, lambda_w, lambda_chi, objective[1])
         old = _objective(registration, layers.registered, g, lambda_w, lambda_chi, new[1])
         info["objectives"].append(new[0])
@@ -116,11 +121,12 @@ def depth_step(registration, reference, distorted, *, camera, threshold, space, 
     return layers, dense, info
 
 
-def _one_step(registration, reference, g, windows):
-    """Components tested as depth layers, then the dense depth map of the rest."""
+def _one_step(registration, reference, g, windows, allowed=None):
+    """Components tested as depth layers, then the dense depth map of the rest
+    (on ``allowed`` pixels)."""
     layers = depth_layers(registration, reference, g, **windows)
     layered = dataclasses.replace(registration, registered=layers.registered, chi=layers.chi)
-    dense = depth_map(layered, reference, g, **windows)
+    dense = depth_map(layered, reference, g, allowed=allowed, **windows)
     layers.registered, layers.chi = dense.registered, dense.chi
     layers.parallax = layers.parallax | dense.explained
     return layers, dense
