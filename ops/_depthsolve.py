@@ -15,10 +15,12 @@ Rule: a round is kept only when eq. 13's total objective of the final model
 ``lambda_w`` times the weights' sum, over the pixels both models cover)
 decreases; the first round that does not is dropped and the rounds stop.
 Pixels of components found to be depth layers are left out of the re-solve
-(the depth map does not hold their depth).  Later rounds' depth maps may give
-a depth only to pixels the first one gave one (with the plane's weights): the
-rows fitted to the depths taken would otherwise make a new object that took a
-depth by chance more consistent with it, round after round.  Only tiles whose depth map took a
+(the depth map does not hold their depth), and so are pixels still above the
+change threshold (change candidates carry no evidence of the motion).  Later
+rounds' depth maps may give a depth only to pixels the first one gave one or
+left below the threshold: fitting the rows to the depths taken would otherwise
+make a new object that took a depth by chance more consistent with it, round
+after round, until it is explained away.  Only tiles whose depth map took a
 depth on at least :attr:`AlternateParams.min_share` of their pixels pay for
 it, and only rows holding such pixels are solved again.
 """
@@ -96,7 +98,9 @@ def depth_step(registration, reference, distorted, *, camera, threshold, space, 
     g = np.asarray(distorted, np.float32)
     layers, dense = _one_step(registration, reference, g, windows)
     info = {"rounds": 0, "objectives": [], "rows": 0}
-    taken = allowed = dense.inverse_depth != 1.0
+    taken = dense.inverse_depth != 1.0
+    # later rounds: no new depth for what the first round left a change candidate
+    allowed = taken | (np.abs(g - layers.registered) <= threshold)
     if params.rounds <= 0 or taken.sum() < params.min_share * max(int(registration.valid.sum()), 1):
         return layers, dense, info
     objective = _objective(registration, layers.registered, g, lambda_w, lambda_chi)
