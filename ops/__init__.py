@@ -28,6 +28,7 @@ from ._errors import InputError, ParameterError, RSMBError, RunError, SolverErro
 from ._forward import CameraPath, RenderResult, render
 from ._intensity import IntensityScale, intensity_scale
 from ._depthmap import DepthMapParams, DepthMapResult, depth_map
+from ._depthsolve import AlternateParams, depth_step
 from ._layers import LayerParams, LayerResult, depth_layers
 from ._metrics import ConfusionCounts, confusion, trajectory_rmse
 from ._oracle import ExactRowSolution, huber_objective, optimal_chi, row_objective, solve_row_exact
@@ -43,7 +44,7 @@ from ._threshold import kapur_threshold, kapur_threshold_histogram
 
 #: Version of the kernels' results: raised whenever a change to ops alters what
 #: a run computes, so that ``--resume`` never mixes tiles of two versions.
-KERNEL_VERSION = 4
+KERNEL_VERSION = 5
 
 __all__ = [
     "KERNEL_VERSION",
@@ -69,6 +70,8 @@ __all__ = [
     "DepthMapParams",
     "DepthMapResult",
     "depth_map",
+    "AlternateParams",
+    "depth_step",
     "Registration",
     "register",
     "reground",

@@ -86,7 +86,7 @@ class DepthMapResult:
 
 
 def depth_map(registration, reference, distorted, *, camera, threshold, reference_origin_yx=(0, 0),
-              distorted_origin_yx=(0, 0), lambda_chi=0.02, params=None):
+              distorted_origin_yx=(0, 0), lambda_chi=0.02, params=None, allowed=None):
     """Re-render a registration per pixel at the depth that explains it best.
 
     Parameters
@@ -106,6 +106,8 @@ def depth_map(registration, reference, distorted, *, camera, threshold, referenc
     lambda_chi : float
         eq. 13's weight of ``||chi||_1``, for the change term of re-rendered pixels.
     params : DepthMapParams, optional
+    allowed : ndarray of bool, shape (H, W), optional
+        Only these pixels may take a depth (default: all).
 
     Returns
     -------
@@ -120,6 +122,8 @@ def depth_map(registration, reference, distorted, *, camera, threshold, referenc
     valid = registration.valid & np.isfinite(base)
     residual = np.where(valid, np.abs(g - base), 0.0).astype(np.float32)
     active = _active(residual, valid, tau, params.window)
+    if allowed is not None:
+        active &= np.asarray(allowed, bool)
     if not active.any() or not tau > 0:
         return out
     rows = _RowPoses.of(registration, g.shape[0])
@@ -218,7 +222,6 @@ def _render_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, q,
     (translations and scale times ``q``) applied to ``ref``, times the column
     gain, where ``mask``; NaN where a pose leaves valid reference data."""
     height, width = out.shape
-    hr, wr = ref.shape
     per_column = gain.shape[0] == width
     for i in range(height):
         s0, s1 = offsets[i], offsets[i + 1]
@@ -242,26 +245,32 @@ def _render_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, q,
             acc = 0.0
             ok = True
             for k in range(count):
-                m = maps[k]
-                tx, ty, sc = shifts[k, 0], shifts[k, 1], shifts[k, 2]
-                ux = (j + dx - cx - tx) / sc
-                uy = (y - cy - ty) / sc
-                h2 = m[6] * ux + m[7] * uy + m[8]
-                u = (m[0] * ux + m[1] * uy + m[2]) / h2 + cx
-                v = (m[3] * ux + m[4] * uy + m[5]) / h2 + cy
-                if not (u >= 0.0 and v >= 0.0 and u <= wr - 1 and v <= hr - 1):
-                    ok = False
-                    break
-                iu = min(int(u), wr - 2)
-                iv = min(int(v), hr - 2)
-                fu = u - iu
-                fv = v - iv
-                top = ref[iv, iu] * (1.0 - fu) + ref[iv, iu + 1] * fu
-                bot = ref[iv + 1, iu] * (1.0 - fu) + ref[iv + 1, iu + 1] * fu
-                val = top * (1.0 - fv) + bot * fv
+                val = _sample(ref, maps[k], shifts[k, 0], shifts[k, 1], shifts[k, 2], j + dx, y, cx, cy)
                 if math.isnan(val):
                     ok = False
                     break
                 acc += weights[s0 + k] * val
             if ok:
                 out[i, j] = acc * (gain[j] if per_column else 1.0)
+
+
+@numba.njit(nogil=True, cache=True)
+def _sample(ref, m, tx, ty, sc, x, y, cx, cy):
+    """The reference at the point a pose (rotation map ``m``, translations
+    ``tx``, ``ty`` px, scale ``sc``) carries capture pixel (x, y) to, in the
+    reference window's frame: bilinear; NaN outside it or on no-data."""
+    hr, wr = ref.shape
+    ux = (x - cx - tx) / sc
+    uy = (y - cy - ty) / sc
+    h2 = m[6] * ux + m[7] * uy + m[8]
+    u = (m[0] * ux + m[1] * uy + m[2]) / h2 + cx
+    v = (m[3] * ux + m[4] * uy + m[5]) / h2 + cy
+    if not (u >= 0.0 and v >= 0.0 and u <= wr - 1 and v <= hr - 1):
+        return math.nan
+    iu = min(int(u), wr - 2)
+    iv = min(int(v), hr - 2)
+    fu = u - iu
+    fv = v - iv
+    top = ref[iv, iu] * (1.0 - fu) + ref[iv, iu + 1] * fu
+    bot = ref[iv + 1, iu] * (1.0 - fu) + ref[iv + 1, iu + 1] * fu
+    return top * (1.0 - fv) + bot * fv

@@ -131,7 +131,8 @@ def registration_options(func):
         click.option("--no-layers", is_flag=True,
                      help="Do not test candidate changes against depth layers (by default one that registers at "
                           "some relative depth is parallax, in parallax_mask, not change) and do not re-render "
-                          "unexplained residual at the relative depth that explains it (a dense depth map)."),
+                          "unexplained residual at the relative depth that explains it (a dense depth map, with the "
+                          "rows' weights re-solved at those depths where it took depths widely)."),
         click.option("--focal", type=Number(min=0, min_open=True), default=None,
                      help="Focal length in pixels of the whole image. Default 1.2 x the larger side."),
     ]

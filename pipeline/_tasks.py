@@ -5,7 +5,6 @@ and masks run per block of tiles (see ``pipeline._plan._block_grid``), a
 arguments, so any dask scheduler (threads, processes, distributed) can run
 them."""
 
-import dataclasses
 import functools
 import time
 from dataclasses import dataclass
@@ -204,18 +203,17 @@ def _depth_layers(result, reference, capture, camera, tile, params, changes):
     """The depth-layer step of one tile with the change threshold of the tile's
     own residuals (the mosaic's is not known yet): every candidate change
     tested as a depth layer (:func:`ops.depth_layers`), then a dense
-    relative-depth map of what residual is left (:func:`ops.depth_map`); the
-    registration as it is when ``changes.layers`` is off."""
+    relative-depth map of what residual is left (:func:`ops.depth_map`), the
+    rows' weights and the depth map re-estimated in turn where the map took
+    depths widely (:func:`ops.depth_step`); the registration as it is when
+    ``changes.layers`` is off."""
     if not changes.layers:
         return ops.LayerResult(np.zeros(result.valid.shape, bool), result.registered, result.chi)
     threshold = _tile_threshold(result, capture, changes)
-    windows = dict(reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
-                   lambda_chi=params.lambda_chi)
-    out = ops.depth_layers(result, reference, capture, camera=camera, threshold=threshold, **windows)
-    layered = dataclasses.replace(result, registered=out.registered, chi=out.chi)
-    dense = ops.depth_map(layered, reference, capture, camera=camera, threshold=threshold, **windows)
-    out.registered, out.chi = dense.registered, dense.chi
-    out.parallax |= dense.explained
+    resolved = params.resolved(camera)
+    out, _, _ = ops.depth_step(result, reference, capture, camera=camera, threshold=threshold, space=resolved.space,
+                               lambda_w=params.lambda_w, lambda_chi=params.lambda_chi,
+                               reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin)
     return out
 
 
