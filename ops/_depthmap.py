@@ -32,7 +32,7 @@ import numpy as np
 
 from ._camera import full_poses
 from ._oracle import optimal_chi
-from ._warp import _inverse_map
+from ._warp import _bilinear, _inverse_map
 
 __all__ = ["DepthMapParams", "DepthMapResult", "depth_map"]
 
@@ -259,18 +259,7 @@ def _sample(ref, m, tx, ty, sc, x, y, cx, cy):
     """The reference at the point a pose (rotation map ``m``, translations
     ``tx``, ``ty`` px, scale ``sc``) carries capture pixel (x, y) to, in the
     reference window's frame: bilinear; NaN outside it or on no-data."""
-    hr, wr = ref.shape
     ux = (x - cx - tx) / sc
     uy = (y - cy - ty) / sc
     h2 = m[6] * ux + m[7] * uy + m[8]
-    u = (m[0] * ux + m[1] * uy + m[2]) / h2 + cx
-    v = (m[3] * ux + m[4] * uy + m[5]) / h2 + cy
-    if not (u >= 0.0 and v >= 0.0 and u <= wr - 1 and v <= hr - 1):
-        return math.nan
-    iu = min(int(u), wr - 2)
-    iv = min(int(v), hr - 2)
-    fu = u - iu
-    fv = v - iv
-    top = ref[iv, iu] * (1.0 - fu) + ref[iv, iu + 1] * fu
-    bot = ref[iv + 1, iu] * (1.0 - fu) + ref[iv + 1, iu + 1] * fu
-    return top * (1.0 - fv) + bot * fv
+    return _bilinear(ref, (m[0] * ux + m[1] * uy + m[2]) / h2 + cx, (m[3] * ux + m[4] * uy + m[5]) / h2 + cy)

@@ -48,6 +48,22 @@ def _inverse_map(pose6, focal, cx, cy):
 
 
 @numba.njit(**_JIT)
+def _bilinear(ref, u, v):
+    """``ref`` (Hr, Wr) at the point (u, v) (column, row), bilinear; NaN
+    outside it or on no-data."""
+    hr, wr = ref.shape
+    if not (u >= 0.0 and v >= 0.0 and u <= wr - 1 and v <= hr - 1):
+        return math.nan
+    iu = min(int(u), wr - 2)
+    iv = min(int(v), hr - 2)
+    fu = u - iu
+    fv = v - iv
+    top = ref[iv, iu] * (1.0 - fu) + ref[iv, iu + 1] * fu
+    bot = ref[iv + 1, iu] * (1.0 - fu) + ref[iv + 1, iu + 1] * fu
+    return top * (1.0 - fv) + bot * fv
+
+
+@numba.njit(**_JIT)
 def _build_row(ref, y, x0, poses6, focal, cx, cy, out):
     """Fill ``out`` (K, N) with row ``y`` of the reference warped by each pose.
 
@@ -57,7 +73,6 @@ def _build_row(ref, y, x0, poses6, focal, cx, cy, out):
     set to zero.
     """
     k_count, n = out.shape
-    hr, wr = ref.shape
     valid = np.ones(n, dtype=np.uint8)
     for k in range(k_count):
         m, tx, ty, sc = _inverse_map(poses6[k], focal, cx, cy)
@@ -73,22 +88,12 @@ def _build_row(ref, y, x0, poses6, focal, cx, cy, out):
             inv = 1.0 / (h2 + j * d2)
             u = (h0 + j * d0) * inv + cx
             v = (h1 + j * d1) * inv + cy
-            if u >= 0.0 and v >= 0.0 and u <= wr - 1 and v <= hr - 1:
-                iu = min(int(u), wr - 2)
-                iv = min(int(v), hr - 2)
-                fu = u - iu
-                fv = v - iv
-                top = ref[iv, iu] * (1.0 - fu) + ref[iv, iu + 1] * fu
-                bot = ref[iv + 1, iu] * (1.0 - fu) + ref[iv + 1, iu + 1] * fu
-                val = top * (1.0 - fv) + bot * fv
-                if math.isnan(val):
-                    valid[j] = 0
-                    out[k, j] = 0.0
-                else:
-                    out[k, j] = val
-            else:
+            val = _bilinear(ref, u, v)
+            if math.isnan(val):
                 valid[j] = 0
                 out[k, j] = 0.0
+            else:
+                out[k, j] = val
     for j in range(n):
         if valid[j] == 0:
             for k in range(k_count):

@@ -11,16 +11,7 @@ from scipy import ndimage
 from rsmb import ops
 from rsmb.ops._depthmap import _geometry, _RowPoses
 
-SHAPE, EXPOSURE = (384, 384), 20.0
-
-
-def _path(tx=(15.0, 19.0), ty=(3.0, 6.0)):
-    duration = SHAPE[0] + EXPOSURE + 1.0
-    t = np.linspace(0.0, duration, 32)
-    poses = np.zeros((t.size, 6))
-    poses[:, 0] = np.linspace(*tx, t.size)
-    poses[:, 1] = np.linspace(*ty, t.size)
-    return ops.CameraPath(t, poses)
+from .test_layers import EXPOSURE, SHAPE, _path  # the same scene and camera path
 
 
 def _run(pair):
