@@ -32,10 +32,11 @@ import numba
 import numpy as np
 
 from ._camera import full_poses
-from ._depthmap import _inverse_map, _sample, depth_map
+from ._depthmap import _geometry, _sample, depth_map
 from ._layers import depth_layers
-from ._oracle import optimal_chi
+from ._oracle import _huber_loss, optimal_chi
 from ._rowsolve import _solve_huber_nn
+from ._warp import _inverse_map
 
 __all__ = ["AlternateParams", "depth_step"]
 
@@ -144,12 +145,9 @@ def _objective(registration, registered, g, lambda_w, lambda_chi, common=None):
     cover = registration.valid & np.isfinite(registered)
     if common is not None:
         cover &= common
-    r = ((g - np.where(cover, registered, 0.0)) / gain)[cover].astype(np.float64)
-    delta = 0.5 * lambda_chi
-    a = np.abs(r)
-    huber = np.where(a <= delta, r * r, 2.0 * delta * a - delta * delta).sum()
+    r = ((g - np.where(cover, registered, 0.0)) / gain)[cover]
     weights = sum(float(w.sum()) for _, w in registration.row_weights.values())
-    return float(huber + lambda_w * weights), cover
+    return _huber_loss(r, 0.5 * lambda_chi) + lambda_w * weights, cover
 
 
 def _resolve_rows(registration, reference, g, inverse_depth, exclude, rows, camera, space, lambda_w, lambda_chi,
@@ -158,9 +156,7 @@ def _resolve_rows(registration, reference, g, inverse_depth, exclude, rows, came
     pixel's columns at its own inverse depth, warm-started from their weights;
     the plane (inverse depth 1) re-rendered with the new weights."""
     ref = np.ascontiguousarray(reference, np.float32)
-    focal, cx, cy = float(camera.focal), float(camera.center_xy[0] - reference_origin_yx[1]), \
-        float(camera.center_xy[1] - reference_origin_yx[0])
-    dy, dx = float(distorted_origin_yx[0] - reference_origin_yx[0]), float(distorted_origin_yx[1] - reference_origin_yx[1])
+    focal, cx, cy, dy, dx = _geometry(camera, reference_origin_yx, distorted_origin_yx)
     gain = np.ones(g.shape[1]) if registration.column_gain is None else np.asarray(registration.column_gain, np.float64)
     weights = dict(registration.row_weights)
     registered, chi, valid = registration.registered.copy(), registration.chi.copy(), registration.valid.copy()

@@ -171,9 +171,14 @@ def huber_objective(F, g, w, *, lambda_w: float, lambda_chi: float, weights=None
     w = _check_vector("w", w, F.shape[1])
     lw = _check_lambda("lambda_w", lambda_w)
     d = 0.5 * _check_lambda("lambda_chi", lambda_chi)
-    a = np.abs(g - F @ w)[keep]
-    rho = np.where(a <= d, a * a, 2.0 * d * a - d * d)
-    return float(rho.sum() + lw * np.abs(w).sum())
+    return _huber_loss((g - F @ w)[keep], d) + lw * float(np.abs(w).sum())
+
+
+def _huber_loss(residual, delta):
+    """``sum_j rho(r_j)``: the Huber function with knee ``delta`` (eq. 13's data
+    and change terms with ``chi`` minimised out), summed in float64."""
+    a = np.abs(np.asarray(residual, np.float64))
+    return float(np.where(a <= delta, a * a, 2.0 * delta * a - delta * delta).sum())
 
 
 def row_objective(

@@ -27,7 +27,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import ndimage
 
-from ._oracle import optimal_chi
+from ._oracle import _huber_loss, optimal_chi
 from ._propagate import _px_per_unit
 from ._rowproblem import _centroid, _RowProblem, _shift_margin, _Solver, _spread
 from ._start import _adapted_half_width
@@ -208,6 +208,4 @@ def _resolve_row(run, i, center, nearest):
 
 def _cost(r, w, run):
     """Eq. 13 with the change term minimised out (Huber loss plus ``lambda_w ||w||_1``)."""
-    d = run.solver.delta
-    a = np.abs(r)
-    return float(np.where(a <= d, a * a, 2 * d * a - d * d).sum()) + run.params.lambda_w * float(np.sum(w))
+    return _huber_loss(r, run.solver.delta) + run.params.lambda_w * float(np.sum(w))
