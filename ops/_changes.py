@@ -157,11 +157,34 @@ def score_histogram(residual, score, valid):
         ``g - F w`` and ``|chi|``.
     valid : ndarray of bool, shape (H, W)
     """
-    r = np.abs(residual[valid]).astype(np.float64)
-    c = score[valid].astype(np.float64)
-    c = c[c > 0]
-    return ScoreHistogram(np.histogram(np.clip(r, 0, 4.0), _RESIDUAL_EDGES)[0].astype(np.int64),
-                          np.histogram(np.clip(c, 0, 2.0), _SCORE_EDGES)[0].astype(np.int64))
+    residual_counts = np.zeros(RESIDUAL_BINS, np.int64)
+    score_counts = np.zeros(SCORE_BINS, np.int64)
+    _histograms(np.asarray(residual), np.asarray(score), np.asarray(valid, bool), _RESIDUAL_EDGES, _SCORE_EDGES,
+                residual_counts, score_counts)
+    return ScoreHistogram(residual_counts, score_counts)
+
+
+@numba.njit(nogil=True, cache=True)
+def _histograms(residual, score, valid, residual_edges, score_edges, residual_counts, score_counts):
+    """:func:`score_histogram`'s counts in one pass, as ``np.histogram`` counts
+    them: ``|residual|`` clipped to the last residual edge, the score's positive
+    values clipped to the last score edge; bins closed on the left, the last
+    one on both sides; NaN is not counted."""
+    height, width = valid.shape
+    r_last, s_last = residual_edges[-1], score_edges[-1]
+    for i in range(height):
+        for j in range(width):
+            if not valid[i, j]:
+                continue
+            r = abs(np.float64(residual[i, j]))
+            if r == r:
+                k = np.searchsorted(residual_edges, min(r, r_last), side="right") - 1
+                residual_counts[min(k, residual_counts.shape[0] - 1)] += 1
+            c = np.float64(score[i, j])
+            if c > 0:
+                c = min(c, s_last)
+                k = np.searchsorted(score_edges, c, side="right") - 1
+                score_counts[min(k, score_counts.shape[0] - 1)] += 1
 
 
 def change_threshold(histogram, *, params=ChangeParams()):

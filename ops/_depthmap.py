@@ -137,14 +137,9 @@ def depth_map(registration, reference, distorted, *, camera, threshold, referenc
     depth = np.ones(g.shape, np.float32)
     geometry = _geometry(camera, reference_origin_yx, distorted_origin_yx)
     ref = np.ascontiguousarray(reference, np.float32)
-    for q in qs:
-        rendered = rows.render(ref, geometry, float(q), render_mask)
-        err = np.where(np.isfinite(rendered), np.abs(g - rendered), tau)
-        cost = _window_cost(err, tau, params.window)
-        better = active & (cost < best) & np.isfinite(rendered)
-        best[better] = cost[better]
-        chosen[better] = rendered[better]
-        depth[better] = q
+    _sweep(ref, rows.poses6, rows.weights, rows.offsets, rows.gain, *geometry, qs.astype(np.float64),
+           render_mask.astype(np.uint8), active.astype(np.uint8), np.ascontiguousarray(g), tau, int(params.window),
+           best, chosen, depth)
     take = active & np.isfinite(chosen) & (best <= params.gain * cost_plane)
     out.registered[take] = chosen[take]
     out.inverse_depth[take] = depth[take]
@@ -217,6 +212,37 @@ class _RowPoses:
 
 
 @numba.njit(nogil=True, cache=True)
+def _row_maps(poses6, s0, s1, q, focal, cx, cy):
+    """The inverse maps of poses ``s0:s1`` at inverse depth ``q`` (translations
+    and scale times ``q``): rotation maps and (tx, ty, scale) per pose."""
+    count = s1 - s0
+    maps = np.empty((count, 9))
+    shifts = np.empty((count, 3))
+    for k in range(count):
+        p = poses6[s0 + k].copy()
+        p[0] *= q
+        p[1] *= q
+        p[2] *= q
+        m, tx, ty, sc = _inverse_map(p, focal, cx, cy)
+        maps[k] = m
+        shifts[k, 0], shifts[k, 1], shifts[k, 2] = tx, ty, sc
+    return maps, shifts
+
+
+@numba.njit(nogil=True, cache=True)
+def _render_pixel(ref, maps, shifts, weights, s0, x, y, cx, cy):
+    """One pixel of a row: the weighted sum of its poses' samples (no gain);
+    NaN where a pose leaves valid reference data."""
+    acc = 0.0
+    for k in range(maps.shape[0]):
+        val = _sample(ref, maps[k], shifts[k, 0], shifts[k, 1], shifts[k, 2], x, y, cx, cy)
+        if math.isnan(val):
+            return np.nan
+        acc += weights[s0 + k] * val
+    return acc
+
+
+@numba.njit(nogil=True, cache=True)
 def _render_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, q, mask, out):
     """``out[i, j]`` = row ``i``'s weighted poses at inverse depth ``q``
     (translations and scale times ``q``) applied to ``ref``, times the column
@@ -227,31 +253,68 @@ def _render_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, q,
         s0, s1 = offsets[i], offsets[i + 1]
         if s0 == s1:
             continue
-        y = i + dy
-        count = s1 - s0
-        maps = np.empty((count, 9))
-        shifts = np.empty((count, 3))
-        for k in range(count):
-            p = poses6[s0 + k].copy()
-            p[0] *= q
-            p[1] *= q
-            p[2] *= q
-            m, tx, ty, sc = _inverse_map(p, focal, cx, cy)
-            maps[k] = m
-            shifts[k, 0], shifts[k, 1], shifts[k, 2] = tx, ty, sc
+        maps, shifts = _row_maps(poses6, s0, s1, q, focal, cx, cy)
         for j in range(width):
-            if mask[i, j] == 0:
+            if mask[i, j] != 0:
+                val = _render_pixel(ref, maps, shifts, weights, s0, j + dx, i + dy, cx, cy)
+                if not math.isnan(val):
+                    out[i, j] = val * (gain[j] if per_column else 1.0)
+
+
+@numba.njit(nogil=True, cache=True)
+def _sweep(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, qs, render_mask, active, g, tau, window,
+           best, chosen, depth):
+    """Every depth of ``qs`` in turn: rendered where ``render_mask`` (as
+    :func:`_render_depth`), its residual truncated at ``tau`` (``tau`` where not
+    rendered) averaged over the ``window`` square (borders replicated, as
+    :func:`_window_cost`), and each ``active`` pixel rendered at that depth
+    takes it (``best`` cost, ``chosen`` value, ``depth``) where its cost is
+    lower than every earlier depth's."""
+    height, width = g.shape
+    per_column = gain.shape[0] == width
+    half = window // 2
+    area = float(window * window)
+    err = np.full((height, width), np.float32(tau), np.float32)
+    rendered = np.full((height, width), np.nan, np.float32)
+    across = np.zeros((height, width), np.float64)
+    for q in qs:
+        for i in range(height):
+            s0, s1 = offsets[i], offsets[i + 1]
+            if s0 == s1:
                 continue
-            acc = 0.0
-            ok = True
-            for k in range(count):
-                val = _sample(ref, maps[k], shifts[k, 0], shifts[k, 1], shifts[k, 2], j + dx, y, cx, cy)
+            maps, shifts = _row_maps(poses6, s0, s1, q, focal, cx, cy)
+            for j in range(width):
+                if render_mask[i, j] == 0:
+                    continue
+                val = _render_pixel(ref, maps, shifts, weights, s0, j + dx, i + dy, cx, cy)
                 if math.isnan(val):
-                    ok = False
-                    break
-                acc += weights[s0 + k] * val
-            if ok:
-                out[i, j] = acc * (gain[j] if per_column else 1.0)
+                    rendered[i, j] = np.nan
+                    err[i, j] = tau
+                else:
+                    val *= gain[j] if per_column else 1.0
+                    rendered[i, j] = val
+                    e = abs(g[i, j] - np.float32(val))
+                    err[i, j] = tau if e > tau else e  # NaN (no capture data) stays NaN
+        for i in range(height):
+            for j in range(width):
+                if render_mask[i, j] == 0:
+                    continue
+                acc = 0.0
+                for d in range(-half, half + 1):
+                    acc += err[i, min(max(j + d, 0), width - 1)]
+                across[i, j] = acc
+        for i in range(height):
+            for j in range(width):
+                if active[i, j] == 0 or math.isnan(rendered[i, j]):
+                    continue
+                acc = 0.0
+                for d in range(-half, half + 1):
+                    acc += across[min(max(i + d, 0), height - 1), j]
+                cost = acc / area
+                if cost < best[i, j]:
+                    best[i, j] = cost
+                    chosen[i, j] = rendered[i, j]
+                    depth[i, j] = q
 
 
 @numba.njit(nogil=True, cache=True)

@@ -9,7 +9,7 @@ import pytest
 from scipy import ndimage
 
 from rsmb import ops
-from rsmb.ops._depthmap import _geometry, _RowPoses
+from rsmb.ops._depthmap import _geometry, _RowPoses, _sweep, _window_cost
 
 from .test_layers import EXPOSURE, SHAPE, _path  # the same scene and camera path
 
@@ -101,3 +101,38 @@ def test_no_residual_no_work():
     dense = ops.depth_map(reg, pair.reference, pair.distorted, camera=pair.camera, threshold=1.0)
     assert dense.depths == 0 and (dense.inverse_depth == 1.0).all()
     np.testing.assert_array_equal(dense.registered, reg.registered)
+
+
+def test_the_sweep_is_each_depth_rendered_and_box_filtered(raised):
+    """The fused sweep (one kernel for every depth, costs only on active pixels)
+    against the sweep written out: each depth rendered on the dilated mask,
+    its truncated residual box-filtered by OpenCV, the lowest cost kept."""
+    pair, reg, plain, dense = raised
+    g = pair.distorted.astype(np.float32)
+    g[5, 7:12] = np.nan  # no capture data: never takes a depth
+    tau, window = float(plain.threshold), 7
+    rng = np.random.default_rng(0)
+    active = ndimage.binary_dilation(rng.random(g.shape) < 0.002, iterations=4)
+    active[:3], active[:, -2:] = True, True  # the borders (replicated) too
+    render_mask = ndimage.binary_dilation(active, np.ones((window, window), bool))
+    rows = _RowPoses.of(reg, g.shape[0])
+    geometry = _geometry(pair.camera, (0, 0), (0, 0))
+    ref = np.ascontiguousarray(pair.reference, np.float32)
+    qs = np.linspace(0.0, 3.0, 13)
+    want_best = np.full(g.shape, np.inf, np.float32)
+    want_chosen, want_depth = np.full(g.shape, np.nan, np.float32), np.ones(g.shape, np.float32)
+    for q in qs:
+        rendered = rows.render(ref, geometry, float(q), render_mask)
+        cost = _window_cost(np.where(np.isfinite(rendered), np.abs(g - rendered), tau), tau, window)
+        better = active & (cost < want_best) & np.isfinite(rendered)
+        want_best[better], want_chosen[better], want_depth[better] = cost[better], rendered[better], q
+    best = np.full(g.shape, np.inf, np.float32)
+    chosen, depth = np.full(g.shape, np.nan, np.float32), np.ones(g.shape, np.float32)
+    _sweep(ref, rows.poses6, rows.weights, rows.offsets, rows.gain, *geometry, qs, render_mask.astype(np.uint8),
+           active.astype(np.uint8), g, tau, window, best, chosen, depth)
+    assert np.isfinite(want_best).sum() > 0.9 * active.sum() and not np.isfinite(best[~active]).any()
+    np.testing.assert_allclose(best, want_best, rtol=1e-5, atol=1e-6)
+    # depths whose costs tie to rounding may swap; everywhere else the same depth and value
+    same = depth == want_depth
+    assert same.mean() > 0.999
+    np.testing.assert_array_equal(chosen[same], want_chosen[same])

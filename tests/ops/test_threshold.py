@@ -3,6 +3,7 @@ import math
 import numpy as np
 import pytest
 
+from rsmb import ops
 from rsmb.ops._errors import ParameterError
 from rsmb.ops._threshold import (
     _kapur_entropy,
@@ -100,3 +101,26 @@ def test_kapur_parameter_errors():
         kapur_threshold_histogram(np.ones(4), np.linspace(0, 1, 4))
     with pytest.raises(ParameterError, match="hist"):
         kapur_threshold_histogram(np.array([1.0, -1.0]), np.linspace(0, 1, 3))
+
+
+def test_score_histogram_counts_as_numpy_does():
+    """The one-pass histograms against np.histogram on the same values: bin
+    edges hit exactly, values past the last edge, NaN, invalid pixels."""
+    from rsmb.ops._changes import _RESIDUAL_EDGES, _SCORE_EDGES
+
+    rng = np.random.default_rng(7)
+    residual = (rng.standard_normal((60, 70)) * 0.05).astype(np.float32)
+    score = np.abs(rng.standard_normal((60, 70))).astype(np.float32)
+    residual.flat[:40] = _RESIDUAL_EDGES[rng.integers(0, len(_RESIDUAL_EDGES), 40)]
+    residual.flat[40:45] = [4.0, 9.0, -7.5, np.nan, 0.0]
+    score.flat[:40] = _SCORE_EDGES[rng.integers(0, len(_SCORE_EDGES), 40)]
+    score.flat[40:45] = [2.0, 5.0, np.nan, -1.0, 0.0]
+    valid = rng.random((60, 70)) > 0.1
+    valid.flat[:45] = True
+    got = ops.score_histogram(residual, score, valid)
+    r = np.abs(residual[valid]).astype(np.float64)
+    c = score[valid].astype(np.float64)
+    c = c[c > 0]
+    np.testing.assert_array_equal(got.residual, np.histogram(np.clip(r, 0, 4.0), _RESIDUAL_EDGES)[0])
+    np.testing.assert_array_equal(got.score, np.histogram(np.clip(c, 0, 2.0), _SCORE_EDGES)[0])
+    assert got.residual.sum() == valid.sum() - 1  # the NaN is not counted
