@@ -49,6 +49,10 @@ class DepthMapParams:
     max_depths : int
         Most depths rendered; the step is the one that moves the largest
         translation of the window by one pixel, coarsened to this count.
+    stride : int
+        Coarse to fine: every ``stride``-th depth is tried at every pixel,
+        then each pixel tries the depths within ``stride`` steps of its best
+        coarse one (1: every depth everywhere).
     window : int
         Side of the square window the truncated residual is averaged over, px.
     gain : float
@@ -58,6 +62,7 @@ class DepthMapParams:
 
     max_inverse_depth: float = 3.0
     max_depths: int = 64
+    stride: int = 4
     window: int = 7
     gain: float = 0.7
 
@@ -139,7 +144,7 @@ def depth_map(registration, reference, distorted, *, camera, threshold, referenc
     ref = np.ascontiguousarray(reference, np.float32)
     _sweep(ref, rows.poses6, rows.weights, rows.offsets, rows.gain, *geometry, qs.astype(np.float64),
            render_mask.astype(np.uint8), active.astype(np.uint8), np.ascontiguousarray(g), tau, int(params.window),
-           best, chosen, depth)
+           int(params.stride), best, chosen, depth)
     take = active & np.isfinite(chosen) & (best <= params.gain * cost_plane)
     out.registered[take] = chosen[take]
     out.inverse_depth[take] = depth[take]
@@ -263,58 +268,120 @@ def _render_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, q,
 
 @numba.njit(nogil=True, cache=True)
 def _sweep(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, qs, render_mask, active, g, tau, window,
-           best, chosen, depth):
-    """Every depth of ``qs`` in turn: rendered where ``render_mask`` (as
-    :func:`_render_depth`), its residual truncated at ``tau`` (``tau`` where not
-    rendered) averaged over the ``window`` square (borders replicated, as
-    :func:`_window_cost`), and each ``active`` pixel rendered at that depth
-    takes it (``best`` cost, ``chosen`` value, ``depth``) where its cost is
-    lower than every earlier depth's."""
+           stride, best, chosen, depth):
+    """The depths of ``qs`` (ascending), coarse to fine: every ``stride``-th
+    depth (and the last) at every ``active`` pixel, then each active pixel
+    the depths within ``stride`` steps of its best coarse one.  A depth is
+    rendered where ``render_mask`` (as :func:`_render_depth`) and where an
+    active pixel evaluated at it needs it in its window; its residual,
+    truncated at ``tau`` (``tau`` where not rendered), is averaged over the
+    ``window`` square (borders replicated, as :func:`_window_cost`), and an
+    active pixel takes the depth (``best`` cost, ``chosen`` value, ``depth``)
+    where its cost is lower than every earlier evaluated depth's.  With
+    ``stride`` 1 every depth is evaluated everywhere."""
     height, width = g.shape
-    per_column = gain.shape[0] == width
+    count = qs.shape[0]
     half = window // 2
-    area = float(window * window)
     err = np.full((height, width), np.float32(tau), np.float32)
     rendered = np.full((height, width), np.nan, np.float32)
     across = np.zeros((height, width), np.float64)
-    for q in qs:
-        for i in range(height):
-            s0, s1 = offsets[i], offsets[i + 1]
-            if s0 == s1:
+    index = np.full((height, width), -1, np.int64)  # best coarse depth per active pixel
+    every = np.ones((height, width), np.int64)
+    for k in range(count):
+        if k % stride == 0 or k == count - 1:
+            _one_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, qs[k], k, render_mask, active,
+                       every, every, g, tau, half, -1, count, err, rendered, across, best, chosen, depth, index)
+    if stride <= 1:
+        return
+    lo, hi = _window_range(index, active, half)
+    for k in range(count):
+        if not (k % stride == 0 or k == count - 1):
+            _one_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, qs[k], k, render_mask, active,
+                       lo, hi, g, tau, half, stride, count, err, rendered, across, best, chosen, depth, index)
+
+
+@numba.njit(nogil=True, cache=True)
+def _one_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, q, k, render_mask, active, lo, hi, g,
+               tau, half, stride, count, err, rendered, across, best, chosen, depth, index):
+    """Depth ``k`` (inverse depth ``q``) of :func:`_sweep`.  ``stride`` -1: the
+    coarse pass (every pixel of ``render_mask``; ``index`` records each active
+    pixel's best coarse depth); else only pixels whose window holds an active
+    pixel with a best coarse depth within ``stride`` of ``k`` (``lo``, ``hi``:
+    the window's range of them) are rendered, and only such active pixels are
+    evaluated."""
+    height, width = err.shape
+    per_column = gain.shape[0] == width
+    area = float((2 * half + 1) * (2 * half + 1))
+
+    def needed(i, j):
+        return render_mask[i, j] != 0 and (stride < 0 or (lo[i, j] - stride < k < hi[i, j] + stride))
+
+    for i in range(height):
+        s0, s1 = offsets[i], offsets[i + 1]
+        if s0 == s1:
+            continue
+        maps, shifts = _row_maps(poses6, s0, s1, q, focal, cx, cy)
+        for j in range(width):
+            if not needed(i, j):
                 continue
-            maps, shifts = _row_maps(poses6, s0, s1, q, focal, cx, cy)
-            for j in range(width):
-                if render_mask[i, j] == 0:
-                    continue
-                val = _render_pixel(ref, maps, shifts, weights, s0, j + dx, i + dy, cx, cy)
-                if math.isnan(val):
-                    rendered[i, j] = np.nan
-                    err[i, j] = tau
-                else:
-                    val *= gain[j] if per_column else 1.0
-                    rendered[i, j] = val
-                    e = abs(g[i, j] - np.float32(val))
-                    err[i, j] = tau if e > tau else e  # NaN (no capture data) stays NaN
-        for i in range(height):
-            for j in range(width):
-                if render_mask[i, j] == 0:
-                    continue
+            val = _render_pixel(ref, maps, shifts, weights, s0, j + dx, i + dy, cx, cy)
+            if math.isnan(val):
+                rendered[i, j] = np.nan
+                err[i, j] = tau
+            else:
+                val *= gain[j] if per_column else 1.0
+                rendered[i, j] = val
+                e = abs(g[i, j] - np.float32(val))
+                err[i, j] = tau if e > tau else e  # NaN (no capture data) stays NaN
+    for i in range(height):
+        for j in range(width):
+            if needed(i, j):
                 acc = 0.0
                 for d in range(-half, half + 1):
                     acc += err[i, min(max(j + d, 0), width - 1)]
                 across[i, j] = acc
-        for i in range(height):
-            for j in range(width):
-                if active[i, j] == 0 or math.isnan(rendered[i, j]):
-                    continue
-                acc = 0.0
-                for d in range(-half, half + 1):
-                    acc += across[min(max(i + d, 0), height - 1), j]
-                cost = acc / area
-                if cost < best[i, j]:
-                    best[i, j] = cost
-                    chosen[i, j] = rendered[i, j]
-                    depth[i, j] = q
+    for i in range(height):
+        for j in range(width):
+            if active[i, j] == 0 or math.isnan(rendered[i, j]):
+                continue
+            if stride > 0 and not (index[i, j] >= 0 and abs(k - index[i, j]) < stride):
+                continue
+            if not needed(i, j):  # rendered at an earlier depth only
+                continue
+            acc = 0.0
+            for d in range(-half, half + 1):
+                acc += across[min(max(i + d, 0), height - 1), j]
+            cost = acc / area
+            if cost < best[i, j]:
+                best[i, j] = cost
+                chosen[i, j] = rendered[i, j]
+                depth[i, j] = q
+                if stride < 0:
+                    index[i, j] = k
+
+
+@numba.njit(nogil=True, cache=True)
+def _window_range(index, active, half):
+    """Per pixel, the smallest and largest ``index`` of the active pixels in
+    its window (lo > hi where there are none)."""
+    height, width = index.shape
+    big = np.iinfo(np.int64).max // 2
+    row_lo = np.full((height, width), big, np.int64)
+    row_hi = np.full((height, width), -big, np.int64)
+    for i in range(height):
+        for j in range(width):
+            if active[i, j] != 0 and index[i, j] >= 0:
+                for d in range(max(j - half, 0), min(j + half, width - 1) + 1):
+                    row_lo[i, d] = min(row_lo[i, d], index[i, j])
+                    row_hi[i, d] = max(row_hi[i, d], index[i, j])
+    lo = np.full((height, width), big, np.int64)
+    hi = np.full((height, width), -big, np.int64)
+    for i in range(height):
+        for j in range(width):
+            for d in range(max(i - half, 0), min(i + half, height - 1) + 1):
+                lo[i, j] = min(lo[i, j], row_lo[d, j])
+                hi[i, j] = max(hi[i, j], row_hi[d, j])
+    return lo, hi
 
 
 @numba.njit(nogil=True, cache=True)

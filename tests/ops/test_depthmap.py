@@ -128,11 +128,20 @@ def test_the_sweep_is_each_depth_rendered_and_box_filtered(raised):
         want_best[better], want_chosen[better], want_depth[better] = cost[better], rendered[better], q
     best = np.full(g.shape, np.inf, np.float32)
     chosen, depth = np.full(g.shape, np.nan, np.float32), np.ones(g.shape, np.float32)
-    _sweep(ref, rows.poses6, rows.weights, rows.offsets, rows.gain, *geometry, qs, render_mask.astype(np.uint8),
-           active.astype(np.uint8), g, tau, window, best, chosen, depth)
+    args = (ref, rows.poses6, rows.weights, rows.offsets, rows.gain, *geometry, qs, render_mask.astype(np.uint8),
+            active.astype(np.uint8), g, tau, window)
+    _sweep(*args, 1, best, chosen, depth)
     assert np.isfinite(want_best).sum() > 0.9 * active.sum() and not np.isfinite(best[~active]).any()
     np.testing.assert_allclose(best, want_best, rtol=1e-5, atol=1e-6)
     # depths whose costs tie to rounding may swap; everywhere else the same depth and value
     same = depth == want_depth
     assert same.mean() > 0.999
     np.testing.assert_array_equal(chosen[same], want_chosen[same])
+    # coarse to fine: never below the full sweep's cost, and the same depth almost everywhere
+    fine = np.full(g.shape, np.inf, np.float32)
+    fine_chosen, fine_depth = np.full(g.shape, np.nan, np.float32), np.ones(g.shape, np.float32)
+    _sweep(*args, 4, fine, fine_chosen, fine_depth)
+    swept = np.isfinite(want_best)
+    assert np.array_equal(np.isfinite(fine), swept)
+    assert (fine[swept] >= want_best[swept] - 1e-6).all()
+    assert np.mean(fine_depth[swept] == want_depth[swept]) > 0.95, np.mean(fine_depth[swept] == want_depth[swept])
