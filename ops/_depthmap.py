@@ -64,7 +64,7 @@ class DepthMapParams:
     max_depths: int = 64
     stride: int = 4
     window: int = 7
-    gain: float = 0.7
+    gain: float = 0.85
 
 
 @dataclass
