@@ -11,8 +11,9 @@ to it: no JavaScript, no network.  Figures:
     Per-row pose, one panel per axis: the fused path and each tile column's own;
     an axis that is zero on every row gets no panel, only a note (figure and
     caption).  Vector lines and text, drawn by the browser.
-``gain.png``, ``agreement.png``
-    Per-tile maps with their values written in the cells.
+``gain.svg``, ``agreement.svg``
+    Per-tile maps with their values written in the cells (a store of more
+    than one tile).
 ``change_score.png``
     The change score, downsampled, one value per PNG pixel; the page draws it
     in an SVG frame of axes and a colorbar with the threshold marked.
@@ -39,7 +40,8 @@ log = logging.getLogger("rsmb")
 
 DEFAULT_MAX_PIXELS = 2048 * 2048
 _REQUIRED = ("change_mask", "change_score", "registered", "trajectory", "gain")
-_OLD_FIGURES = ("trajectory.png",)  # written by earlier versions: removed on overwrite, not to be shown as current
+# written by earlier versions: removed on overwrite, not left to look current
+_OLD_FIGURES = ("trajectory.png", "gain.png", "agreement.png")
 
 
 # --------------------------------------------------------------------------- public

@@ -5,10 +5,9 @@ Large mosaics are reduced band by band straight from zarr (block mean for
 images, block maximum for the mask and the score so that small changes stay
 visible): one full-resolution array is never loaded whole.  The overlay and
 the score are PNGs rendered pixel for pixel at the downsampled size; the
-trajectory and the score's frame (axes, colorbar, threshold) are SVG text
-(:mod:`._report_svg`), drawn by the browser; the per-tile maps of a tiled
-store are drawn with matplotlib's object API (no pyplot, no global state) on
-fixed margins.
+trajectory, the per-tile maps and the score's frame (axes, colorbar,
+threshold) are SVG text (:mod:`._report_svg`), drawn by the browser.
+Matplotlib only lends its colormaps.
 """
 
 import math
@@ -17,9 +16,9 @@ import numpy as np
 
 from rsmb.ops import ParameterError
 
-from ._report_svg import score_frame_svg, trajectory_svg
+from ._report_svg import score_frame_svg, tile_map_svg, trajectory_svg
 
-FIGURES = ("overlay.png", "trajectory.svg", "gain.png", "agreement.png", "change_score.png")
+FIGURES = ("overlay.png", "trajectory.svg", "gain.svg", "agreement.svg", "change_score.png")
 _SCORE_SIDE = 1024  # the score figure shows a value per PNG pixel (or a square of them), at most this many a side
 _TRAJECTORY_WIDTH = 1000  # px
 
@@ -31,7 +30,6 @@ _EDGE_RGB = np.array([1.00, 0.92, 0.15])
 _GRID_ALPHA = 0.35
 _MASK_ALPHA = 0.45
 
-_DPI = 100  # matplotlib figures (the per-tile maps): pixels per inch
 # zlib level of every PNG: higher levels cost much more CPU on the photo-like overlay for a file hardly smaller
 _PNG_LEVEL = 2
 
@@ -57,8 +55,8 @@ def write_figures(group, attrs, out, factor):
         SVG's user space, and for the trajectory ``"flat_axes"``, the labels of
         the pose axes that are zero on every row and have no panel; for the
         score ``"vmax"``, ``"zoom"`` and its ``"frame"``, an ``<svg>`` element
-        for the page, of ``"frame_size"``.  ``agreement.png`` is missing when
-        the store has no ``tile_agreement``, both it and ``gain.png`` for a
+        for the page, of ``"frame_size"``.  ``agreement.svg`` is missing when
+        the store has no ``tile_agreement``, both it and ``gain.svg`` for a
         store of one tile (its gain is in the summary; one tile agrees with
         itself).
     score_factor : int
@@ -69,9 +67,9 @@ def write_figures(group, attrs, out, factor):
     figures["overlay.png"] = _write_overlay(group, attrs["tile_grid"], factor, out / "overlay.png")
     figures["trajectory.svg"] = _write_trajectory(group, attrs, out / "trajectory.svg")
     if list(attrs["tile_grid"]["tiles"]) != [1, 1]:  # one tile: its gain is in the summary, no agreement
-        figures["gain.png"] = _write_gain(group, attrs, out / "gain.png")
+        figures["gain.svg"] = _write_gain(group, attrs, out / "gain.svg")
         if "tile_agreement" in group:
-            figures["agreement.png"] = _write_agreement(group, attrs, out / "agreement.png")
+            figures["agreement.svg"] = _write_agreement(group, attrs, out / "agreement.svg")
     shape = tuple(group["change_score"].shape)
     score_factor = max(factor, math.ceil(shape[0] / _SCORE_SIDE), math.ceil(shape[1] / _SCORE_SIDE))
     figures["change_score.png"] = _write_score(group, attrs, score_factor, out / "change_score.png")
@@ -235,57 +233,15 @@ def _write_overlay(group, grid, factor, path):
     return _write_png(rgb, path)
 
 
-# --------------------------------------------------------------------------- matplotlib figures
-#
-# Figures are laid out with fixed margins in pixels, sized from the font (no
-# constrained layout: its tight-bbox passes would cost more than the drawing),
-# drawn once and written by pillow.
-
-
-def _font_px():
-    """Height of the default font, figure pixels."""
-    from matplotlib import rcParams
-
-    return rcParams["font.size"] * _DPI / 72.0
-
-
-def _figure(width, height):
-    """A figure of ``width`` x ``height`` pixels on an Agg canvas, no layout engine."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(width / _DPI, height / _DPI), dpi=_DPI)
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _add_axes(fig, left, top, width, height, **kwargs):
-    """Axes whose box is ``width`` x ``height`` pixels at ``(left, top)`` pixels
-    from the figure's top-left corner."""
-    w, h = fig.canvas.get_width_height()
-    return fig.add_axes((left / w, 1.0 - (top + height) / h, width / w, height / h), **kwargs)
-
-
-def _render(fig):
-    """Draw ``fig`` once and return its pixels, uint8 RGB, shape (height, width, 3).
-
-    The figure is left to the garbage collector: ``fig.clear()`` would rebuild
-    every axes' ticks only to drop them."""
-    fig.canvas.draw()
-    return np.array(np.asarray(fig.canvas.buffer_rgba())[..., :3])
+# --------------------------------------------------------------------------- PNG
 
 
 def _write_png(rgb, path):
-    """Write uint8 RGB pixels as a PNG (RGB, not matplotlib's RGBA: a quarter
-    fewer bytes to compress); return the figure entry ``{"size": (w, h)}``."""
+    """Write uint8 RGB pixels as a PNG; return the figure entry ``{"size": (w, h)}``."""
     from PIL import Image
 
     Image.fromarray(rgb, mode="RGB").save(path, compress_level=_PNG_LEVEL)
     return {"size": (rgb.shape[1], rgb.shape[0])}
-
-
-def _save(fig, path):
-    return _write_png(_render(fig), path)
 
 
 # --------------------------------------------------------------------------- trajectory
@@ -362,69 +318,30 @@ def _tile_colors(n):
 # --------------------------------------------------------------------------- per-tile maps
 
 
-def _tile_map(values, *, title, label, fmt, cmap, vmin=None, vmax=None, marked=(), marked_label=None,
-              line=None):
-    """Figure of a (tiles_y, tiles_x) map with its values written in the cells."""
+def _write_tile_map(values, path, *, cmap, lo=None, hi=None, **kwargs):
+    """A ``(tiles_y, tiles_x)`` map as SVG (:func:`tile_map_svg`), coloured by
+    ``cmap`` from ``lo`` to ``hi`` (default: the finite values' range, widened
+    around a single value)."""
     from matplotlib import colormaps
-    from matplotlib.patches import Patch, Rectangle
-    from matplotlib.ticker import ScalarFormatter
 
-    ny, nx = values.shape
-    fs = _font_px()
-    width = round(_DPI * min(11.0, max(6.4, 0.95 * nx + 2.6)))
-    height = round(_DPI * min(10.0, max(3.6, 0.8 * ny + 1.8)))
-    legend = bool(marked and marked_label)
-    left, top, bar_w, bar_room = 5.0 * fs, 2.4 * fs, 0.9 * fs, 7.5 * fs
-    bottom = 3.4 * fs + (1.6 * fs if legend else 0.0)
-    fig = _figure(width, height)
-    ax = _add_axes(fig, left, top, width - left - bar_room - bar_w - 1.2 * fs, height - top - bottom)
-    cax = _add_axes(fig, width - bar_room - bar_w, top, bar_w, height - top - bottom)
-    image = ax.imshow(np.ma.masked_invalid(values), cmap=colormaps[cmap].with_extremes(bad="0.85"),
-                      vmin=vmin, vmax=vmax, interpolation="nearest", aspect="auto")
-    bar = fig.colorbar(image, cax=cax, label=label if line is None else f"{label}; line: {line[1]}")
-    bar.formatter = ScalarFormatter(useOffset=False)
-    bar.update_ticks()
-    if line is not None:
-        bar.ax.axhline(line[0], color="black", lw=2)
-    _annotate_cells(ax, image, values, fmt)
-    for ty, tx in marked:
-        ax.add_patch(Rectangle((tx - 0.47, ty - 0.47), 0.94, 0.94, fill=False, ec="red", lw=2.5, ls="--"))
-    if legend:
-        fig.legend([Patch(fill=False, ec="red", lw=2, ls="--")], [marked_label], loc="lower center",
-                   bbox_to_anchor=(0.5, 0.2 * fs / height), fontsize=9, frameon=False, borderaxespad=0.0)
-    ax.set_xticks(_ticks(nx))
-    ax.set_yticks(_ticks(ny))
-    ax.set_xlabel("tile column (tile_x)")
-    ax.set_ylabel("tile row (tile_y)")
-    ax.set_title(title)
-    return fig
-
-
-def _ticks(n):
-    return list(range(0, n, max(1, math.ceil(n / 16))))
-
-
-def _annotate_cells(ax, image, values, fmt):
-    ny, nx = values.shape
-    if ny * nx > 400:
-        return
-    size = 10 if ny * nx <= 36 else (8 if ny * nx <= 144 else 6)
-    for ty in range(ny):
-        for tx in range(nx):
-            v = values[ty, tx]
-            if not np.isfinite(v):
-                ax.text(tx, ty, "n/a", ha="center", va="center", fontsize=size, color="0.3")
-                continue
-            r, g, b, _ = image.cmap(image.norm(v))
-            color = "black" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "white"
-            ax.text(tx, ty, format(float(v), fmt), ha="center", va="center", fontsize=size, color=color)
+    finite = values[np.isfinite(values)]
+    lo = (float(finite.min()) if finite.size else 0.0) if lo is None else lo
+    hi = (float(finite.max()) if finite.size else 1.0) if hi is None else hi
+    if hi <= lo:
+        pad = max(1e-3 * abs(lo), 1e-6)
+        lo, hi = lo - pad, hi + pad
+    with np.errstate(invalid="ignore"):
+        colors = colormaps[cmap]((values - lo) / (hi - lo), bytes=True)[..., :3]
+    stops = colormaps[cmap](np.linspace(0.0, 1.0, 33), bytes=True)[:, :3]
+    svg, width, height = tile_map_svg(values, colors, stops, lo=lo, hi=hi, **kwargs)
+    path.write_text(svg, encoding="utf-8")
+    return {"size": (width, height)}
 
 
 def _write_gain(group, attrs, path):
     gain = np.asarray(group["gain"][:], dtype=np.float64)
-    fig = _tile_map(gain, title="Illumination gain per tile", label="gain (capture / reference)",
-                    fmt=".4f", cmap="cividis")
-    return _save(fig, path)
+    return _write_tile_map(gain, path, cmap="cividis", title="Illumination gain per tile",
+                           label="gain (capture / reference)", fmt=".4f")
 
 
 def _write_agreement(group, attrs, path):
@@ -434,11 +351,10 @@ def _write_agreement(group, attrs, path):
     tolerance = (attrs.get("parameters") or {}).get("agreement")
     finite = agree[np.isfinite(agree)]
     top = max([float(finite.max()) if finite.size else 0.0] + ([1.2 * tolerance] if tolerance else []))
-    fig = _tile_map(agree, title="Tile path vs fused path", label="disagreement (px)",
-                    fmt=".2f", cmap="magma_r", vmin=0.0, vmax=max(top, 1e-3), marked=resolved,
-                    marked_label="re-solved around the other tiles' path",
-                    line=(tolerance, f"tolerance {tolerance:g} px") if tolerance else None)
-    return _save(fig, path)
+    return _write_tile_map(agree, path, cmap="magma_r", lo=0.0, hi=max(top, 1e-3), title="Tile path vs fused path",
+                           label="disagreement (px)", fmt=".2f", marked=resolved,
+                           marked_label="re-solved around the other tiles' path",
+                           line=(tolerance, f"tolerance {tolerance:g} px") if tolerance else None)
 
 
 # --------------------------------------------------------------------------- change score

@@ -175,8 +175,8 @@ def _captions(attrs, factor, score_factor, flat_axes=()):
         "trajectory.svg": "Per-row camera pose in global pose coordinates, one panel per axis. Black: the fused "
                           "trajectory (median over tiles of solved rows); thin coloured lines: each tile column's "
                           "own estimate; dashed verticals: tile-row boundaries." + flat,
-        "gain.png": "Illumination gain of the capture against the reference, one value per tile.",
-        "agreement.png": agreement,
+        "gain.svg": "Illumination gain of the capture against the reference, one value per tile.",
+        "agreement.svg": agreement,
         "change_score.png": score,
     }
 
@@ -185,7 +185,7 @@ def _figures_html(figures, captions, one_tile=False):
     parts = []
     for name in FIGURES:
         if name not in figures:
-            why = ("one tile: its gain is in the summary" if name in ("gain.png", "agreement.png")
+            why = ("one tile: its gain is in the summary" if name in ("gain.svg", "agreement.svg")
                    and one_tile else "the store has no data for it")
             parts.append(f"<p>{_esc(name)}: not available ({why}).</p>")
             continue

@@ -1,6 +1,7 @@
 """The vector figures of ``rsmb report`` written as SVG text: the trajectory
-panels (``trajectory.svg``) and the frame of the change score (axes, title and
-colorbar around ``change_score.png``, inline in the page).
+panels (``trajectory.svg``), the per-tile maps (``gain.svg``,
+``agreement.svg``) and the frame of the change score (axes, title and colorbar
+around ``change_score.png``, inline in the page).
 
 Nothing here reads a store or imports matplotlib: the callers pass arrays and
 colours.  Coordinates are SVG user-space pixels rounded to 0.1 px; text is
@@ -70,7 +71,7 @@ def _n(value):
     return f"{value:.1f}".removesuffix(".0")
 
 
-def _text(x, y, value, *, size=_SIZE, anchor="start", middle=False, rotate=False):
+def _text(x, y, value, *, size=_SIZE, anchor="start", middle=False, rotate=False, fill=None):
     """A ``<text>``; ``middle`` centres it vertically on ``y``, ``rotate``
     turns it a quarter counter-clockwise about ``(x, y)``."""
     attrs = f'x="{_n(x)}" y="{_n(y)}"'
@@ -82,6 +83,8 @@ def _text(x, y, value, *, size=_SIZE, anchor="start", middle=False, rotate=False
         attrs += ' dominant-baseline="central"'
     if size != _SIZE:
         attrs += f' font-size="{size}"'
+    if fill is not None:
+        attrs += f' fill="{fill}"'
     return f"<text {attrs}>{esc(value)}</text>"
 
 
@@ -320,7 +323,9 @@ def score_frame_svg(href, size, *, factor, zoom, vmax, threshold, stops):
             f'<rect x="{left + 0.5}" y="{top + 0.5}" width="{w + 1}" height="{h + 1}" fill="none" stroke="#000" '
             f'stroke-width="1"/>']
     body += _image_axes(left + 1, top + 1, w, h, factor / zoom, size[0] * factor, size[1] * factor)
-    body += _colorbar(bar_x, top, bar_w, bar_h, vmax, threshold, stops)
+    label = "change score (intensity units)" + ("; cyan line: threshold" if threshold is not None else "")
+    body += _colorbar(bar_x, top, bar_w, bar_h, 0.0, vmax, stops, label=label, gid="score-colormap", mark=threshold,
+                      mark_color="cyan", extend=True)
     return _document(width, height, body, standalone=False), width, height
 
 
@@ -341,29 +346,133 @@ def _image_axes(x0, y0, w, h, scale, cols, rows):
     return out
 
 
-def _colorbar(x, top, w, h, vmax, threshold, stops):
-    """A vertical colorbar from 0 (bottom) to ``vmax`` with a triangle above
-    for larger scores, ticks on the right, its label and the threshold line."""
-    tri = round(0.05 * h)
-    y0, y1 = top + tri, top + h  # the bar proper, vmax at y0 and 0 at y1
+def _colorbar(x, top, w, h, lo, hi, stops, *, label, gid, mark=None, mark_color="#000", extend=False):
+    """A vertical colorbar from ``lo`` (bottom) to ``hi``, ticks and their
+    values on the right, then ``label``; ``mark`` a value drawn as a line
+    across the bar; ``extend`` a triangle above it in the top colour (values
+    beyond ``hi``).  ``gid`` names the gradient, unique in its document."""
+    tri = round(0.05 * h) if extend else 0
+    y0, y1 = top + tri, top + h  # the bar proper, hi at y0 and lo at y1
     last = len(stops) - 1
-    gradient = "".join(f'<stop offset="{i / last:.4g}" stop-color="#{r:02x}{g:02x}{b:02x}"/>'
-                       for i, (r, g, b) in enumerate(stops.tolist()))
-    over = "#{:02x}{:02x}{:02x}".format(*stops[-1].tolist())
-    ticks, step = nice_ticks(0.0, vmax, 6)
-    ys = [y1 - t / vmax * (y1 - y0) for t in ticks]
-    out = [f'<defs><linearGradient id="score-colormap" x1="0" y1="1" x2="0" y2="0">{gradient}</linearGradient></defs>',
-           f'<rect x="{x}" y="{y0}" width="{w}" height="{y1 - y0}" fill="url(#score-colormap)"/>',
-           f'<path d="M{x} {y0}L{_n(x + w / 2)} {top}L{x + w} {y0}Z" fill="{over}"/>']
-    if threshold is not None:
-        yt = y1 - min(threshold / vmax, 1.0) * (y1 - y0)
-        out.append(f'<path d="M{x} {_n(yt)}h{w}" stroke="cyan" stroke-width="2"/>')
-    out.append(f'<path d="M{x} {y0}L{_n(x + w / 2)} {top}L{x + w} {y0}V{y1}H{x}Z" fill="none" stroke="#000" '
-               f'stroke-width="{_THIN}"/>')
+    gradient = "".join(f'<stop offset="{i / last:.4g}" stop-color="{_hex(c)}"/>' for i, c in enumerate(stops.tolist()))
+    ticks, step = nice_ticks(lo, hi, max(3, round((y1 - y0) / 60)))
+    ys = [y1 - (t - lo) / (hi - lo) * (y1 - y0) for t in ticks]
+    outline = f"M{x} {y0}L{_n(x + w / 2)} {top}L{x + w} {y0}V{y1}H{x}Z" if extend else f"M{x} {y0}H{x + w}V{y1}H{x}Z"
+    out = [f'<defs><linearGradient id="{gid}" x1="0" y1="1" x2="0" y2="0">{gradient}</linearGradient></defs>',
+           f'<rect x="{x}" y="{y0}" width="{w}" height="{y1 - y0}" fill="url(#{gid})"/>']
+    if extend:
+        out.append(f'<path d="M{x} {y0}L{_n(x + w / 2)} {top}L{x + w} {y0}Z" fill="{_hex(stops[-1].tolist())}"/>')
+    if mark is not None:
+        ym = y1 - min(max((mark - lo) / (hi - lo), 0.0), 1.0) * (y1 - y0)
+        out.append(f'<path d="M{x} {_n(ym)}h{w}" stroke="{mark_color}" stroke-width="2"/>')
+    out.append(f'<path d="{outline}" fill="none" stroke="#000" stroke-width="{_THIN}"/>')
     out.append(f'<path d="{"".join(f"M{x + w} {_n(y)}h{_TICK}" for y in ys)}" stroke="#000" stroke-width="{_THIN}"/>')
     names = tick_labels(ticks, step)
-    out += [_text(x + w + 6, y, s, size=_TICK_SIZE, middle=True) for y, s in zip(ys, names)]
+    out += [_text(x + w + 7, y, s, size=_TICK_SIZE, middle=True) for y, s in zip(ys, names)]
     widest = max((text_width(s, _TICK_SIZE) for s in names), default=0.0)
-    label = "change score (intensity units)" + ("; cyan line: threshold" if threshold is not None else "")
-    out.append(_text(x + w + 6 + widest + 16, (top + y1) / 2, label, anchor="middle", middle=True, rotate=True))
+    out.append(_text(x + w + 7 + widest + 16, (top + y1) / 2, label, anchor="middle", middle=True, rotate=True))
+    return out
+
+
+def _hex(rgb):
+    return "#{:02x}{:02x}{:02x}".format(*rgb[:3])
+
+
+# --------------------------------------------------------------------------- per-tile maps
+
+
+def tile_map_svg(values, colors, stops, *, lo, hi, title, label, fmt, marked=(), marked_label=None, line=None):
+    """A map of one value per tile with the values written in the cells (up to
+    400 cells) and a colorbar.
+
+    Parameters
+    ----------
+    values : ndarray, shape (tiles_y, tiles_x)
+        NaN where unknown (grey, "n/a").
+    colors : ndarray, uint8, shape (tiles_y, tiles_x, 3)
+        Each cell's colour.
+    stops : ndarray, uint8, shape (n, 3)
+        The colormap sampled evenly from ``lo`` to ``hi``, for the colorbar.
+    lo, hi : float
+        Range of the colorbar, ``lo < hi``.
+    title, label : str
+        Figure title and colorbar label.
+    fmt : str
+        Format of a value in its cell, ``".4f"``.
+    marked : sequence of (int, int)
+        ``(tile_y, tile_x)`` of tiles outlined dashed red, explained by
+        ``marked_label`` in a legend under the map.
+    line : (float, str), optional
+        A value drawn as a black line across the colorbar and its name,
+        appended to the label.
+
+    Returns
+    -------
+    svg : str
+    width, height : int
+    """
+    ny, nx = values.shape
+    width = round(100 * min(11.0, max(6.4, 0.95 * nx + 2.6)))
+    height = round(100 * min(10.0, max(3.6, 0.8 * ny + 1.8)))
+    legend = bool(len(marked) and marked_label)
+    left, top, bar_w, bar_room = 69, 33, 13, 104
+    aw, ah = width - left - bar_room - bar_w - 17, height - top - 47 - (22 if legend else 0)
+    cw, ch = aw / nx, ah / ny
+    body = [_text(left + aw / 2, top - 10, title, size=16, anchor="middle"),
+            f'<g transform="translate({left} {top})">', '<g shape-rendering="crispEdges">']
+    xe, ye = [round(t * cw) for t in range(nx + 1)], [round(t * ch) for t in range(ny + 1)]  # whole px: no seams
+    body += [f'<rect x="{xe[tx]}" y="{ye[ty]}" width="{xe[tx + 1] - xe[tx]}" height="{ye[ty + 1] - ye[ty]}" '
+             f'fill="{_hex(colors[ty, tx].tolist()) if np.isfinite(values[ty, tx]) else "#d9d9d9"}"/>'
+             for ty in range(ny) for tx in range(nx)]
+    body.append("</g>")
+    body += _cell_texts(values, colors, cw, ch, fmt)
+    for ty, tx in marked:
+        body.append(f'<rect x="{_n((tx + 0.03) * cw)}" y="{_n((ty + 0.03) * ch)}" width="{_n(0.94 * cw)}" '
+                    f'height="{_n(0.94 * ch)}" fill="none" stroke="red" stroke-width="3.5" '
+                    f'stroke-dasharray="12.8 5.6"/>')
+    body.append(f'<rect width="{_n(aw)}" height="{_n(ah)}" fill="none" stroke="#000" stroke-width="{_THIN}"/>')
+    body += _cell_axes(nx, ny, cw, ch, ah)
+    body.append("</g>")
+    body += _colorbar(width - bar_room - bar_w, top, bar_w, ah, lo, hi, stops, gid="colormap",
+                      label=label if line is None else f"{label}; line: {line[1]}",
+                      mark=None if line is None else line[0])
+    if legend:
+        x = width / 2 - (30 + text_width(marked_label, _TICK_SIZE)) / 2
+        body.append(f'<rect x="{_n(x)}" y="{height - 23}" width="20" height="12" fill="none" stroke="red" '
+                    f'stroke-width="2" stroke-dasharray="5 2.2"/>')
+        body.append(_text(x + 28, height - 17, marked_label, size=_TICK_SIZE, middle=True))
+    return _document(width, height, body), width, height
+
+
+def _cell_texts(values, colors, cw, ch, fmt):
+    """The values written in the cells, black or white by the cell's
+    luminance; none beyond 400 cells."""
+    ny, nx = values.shape
+    if ny * nx > 400:
+        return []
+    size = 14 if ny * nx <= 36 else (11 if ny * nx <= 144 else 8)
+    out = []
+    for ty in range(ny):
+        for tx in range(nx):
+            x, y, v = (tx + 0.5) * cw, (ty + 0.5) * ch, float(values[ty, tx])
+            if not math.isfinite(v):
+                out.append(_text(x, y, "n/a", size=size, anchor="middle", middle=True, fill="#4d4d4d"))
+                continue
+            r, g, b = colors[ty, tx].tolist()
+            fill = "#000" if 0.299 * r + 0.587 * g + 0.114 * b > 127.5 else "#fff"
+            out.append(_text(x, y, format(v, fmt), size=size, anchor="middle", middle=True, fill=fill))
+    return out
+
+
+def _cell_axes(nx, ny, cw, ch, ah):
+    """Tile indices at the cells' centres (at most 16 a side) and the axis labels."""
+    xs = range(0, nx, max(1, math.ceil(nx / 16)))
+    ys = range(0, ny, max(1, math.ceil(ny / 16)))
+    ticks = ("".join(f"M{_n((t + 0.5) * cw)} {_n(ah)}v{_TICK}" for t in xs)
+             + "".join(f"M0 {_n((t + 0.5) * ch)}h-{_TICK}" for t in ys))
+    out = [f'<path d="{ticks}" stroke="#000" stroke-width="{_THIN}"/>']
+    out += [_text((t + 0.5) * cw, ah + 19, t, size=_TICK_SIZE, anchor="middle") for t in xs]
+    out += [_text(-8, (t + 0.5) * ch, t, size=_TICK_SIZE, anchor="end", middle=True) for t in ys]
+    out.append(_text(nx * cw / 2, ah + 40, "tile column (tile_x)", anchor="middle"))
+    out.append(_text(-42, ny * ch / 2, "tile row (tile_y)", anchor="middle", rotate=True))
     return out

@@ -157,7 +157,7 @@ def test_bad_max_pixels(store, tmp_path, bad):
 
 
 def test_reports_in_threads(store, tmp_path):
-    """Matplotlib without pyplot: two reports at once in threads."""
+    """Two reports at once in threads: no global state (matplotlib lends only its colormaps)."""
     with ThreadPoolExecutor(2) as pool:
         results = list(pool.map(lambda i: write_report(store, tmp_path / f"rep{i}", max_pixels=96 * 96), range(2)))
     for index in results:
@@ -556,3 +556,84 @@ def test_tick_labels_format():
     assert tick_labels([0.0, 200.0], 200.0) == ["0", "200"]
     assert tick_labels([-1e-17, 0.25], 0.25) == ["0.00", "0.25"]  # no "-0.00"
     assert tick_labels([0.0, 2e-8, 4e-8], 2e-8) == ["0", "2e\u221208", "4e\u221208"]
+
+
+# --------------------------------------------------------------------------- per-tile maps as SVG
+
+
+def _cells(path):
+    """{(tile_y, tile_x): (fill, text)} of a tile map, from the cell rects and
+    the texts centred in them."""
+    root = ET.parse(path).getroot()
+    rects = [r for g in root.iter(f"{SVG}g") if g.get("shape-rendering") for r in g.findall(f"{SVG}rect")]
+    xs = sorted({float(r.get("x")) for r in rects})
+    ys = sorted({float(r.get("y")) for r in rects})
+    cells = {}
+    for r in rects:
+        x, y, w, h = (float(r.get(k)) for k in ("x", "y", "width", "height"))
+        inside = [t.text for t in root.iter(f"{SVG}text") if t.get("text-anchor") == "middle"
+                  and t.get("dominant-baseline") and x < float(t.get("x")) < x + w and y < float(t.get("y")) < y + h]
+        cells[ys.index(y), xs.index(x)] = (r.get("fill"), inside[0] if inside else None)
+    return cells
+
+
+def test_tile_maps_write_values_colours_marks_and_tolerance(store, tmp_path):
+    """gain.svg and agreement.svg: a cell per tile with its value written in
+    it (n/a and grey where unknown), the colormap's colour at the value, the
+    re-solved tiles outlined dashed red with a legend, the tolerance as a black
+    line on the agreement colorbar."""
+    import shutil
+
+    from matplotlib import colormaps
+
+    copy = tmp_path / "maps.zarr"
+    shutil.copytree(store, copy)
+    group = zarr.open_group(str(copy), mode="r+")
+    agree = np.array([[0.1, np.nan], [0.4, 2.5]])
+    gain = np.array([[1.0, 1.02], [0.98, 1.01]])
+    group["tile_agreement"][:], group["gain"][:] = agree, gain
+    summary = dict(group.attrs["summary"])
+    summary["resolved_tiles"] = [[1, 1]]
+    group.attrs["summary"] = summary
+    tolerance = group.attrs["parameters"]["agreement"]
+    write_report(copy, tmp_path / "rep")
+
+    cells = _cells(tmp_path / "rep" / "gain.svg")
+    assert {k: v[1] for k, v in cells.items()} == {(0, 0): "1.0000", (0, 1): "1.0200", (1, 0): "0.9800",
+                                                  (1, 1): "1.0100"}
+    top = colormaps["cividis"](1.0, bytes=True)[:3]
+    assert cells[0, 1][0] == "#{:02x}{:02x}{:02x}".format(*top)  # the largest gain: the top colour
+
+    cells = _cells(tmp_path / "rep" / "agreement.svg")
+    assert cells[0, 1] == ("#d9d9d9", "n/a")
+    assert cells[1, 1][1] == "2.50" and cells[0, 0][1] == "0.10"
+    root = ET.parse(tmp_path / "rep" / "agreement.svg").getroot()
+    dashed_red = [r for r in root.iter(f"{SVG}rect") if r.get("stroke") == "red"]
+    assert len(dashed_red) == 1 + 1  # the re-solved tile and the legend's swatch
+    texts = [t.text for t in root.iter(f"{SVG}text")]
+    assert "re-solved around the other tiles' path" in texts
+    assert f"disagreement (px); line: tolerance {tolerance:g} px" in texts
+    bar = next(r for r in root.iter(f"{SVG}rect") if r.get("fill", "").startswith("url(#"))
+    y0, height = float(bar.get("y")), float(bar.get("height"))
+    mark = [p for p in root.iter(f"{SVG}path") if p.get("stroke-width") == "2"]
+    assert len(mark) == 1
+    y = float(re.match(r"M[-\d.]+ ([-\d.]+)h", mark[0].get("d")).group(1))
+    vmax = max(2.5, 1.2 * tolerance)
+    assert (y0 + height - y) / height == pytest.approx(tolerance / vmax, abs=0.1 / height)
+
+
+def test_tile_map_of_equal_values(tmp_path):
+    """Every tile the same gain: a range is made around it, every cell gets
+    the colormap's middle colour and the colorbar ticks bracket the value."""
+    from matplotlib import colormaps
+
+    from rsmb.pipeline._report_figures import _write_tile_map
+
+    entry = _write_tile_map(np.ones((3, 2)), tmp_path / "g.svg", cmap="cividis", title="t", label="gain", fmt=".4f")
+    assert _svg_size(tmp_path / "g.svg") == entry["size"]
+    cells = _cells(tmp_path / "g.svg")
+    middle = "#{:02x}{:02x}{:02x}".format(*colormaps["cividis"](0.5, bytes=True)[:3])
+    assert len(cells) == 6 and all(v == (middle, "1.0000") for v in cells.values())
+    ticks = [float(t.text.replace("\u2212", "-")) for t in ET.parse(tmp_path / "g.svg").getroot().iter(f"{SVG}text")
+             if t.get("dominant-baseline") and not t.get("text-anchor") and t.text[0].isdigit()]
+    assert len(ticks) >= 2 and min(ticks) <= 1.0 <= max(ticks)
