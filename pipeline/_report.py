@@ -1,24 +1,26 @@
-"""``rsmb report``: an HTML page with PNG figures describing one ``rsmb detect`` run.
+"""``rsmb report``: an HTML page with figures describing one ``rsmb detect`` run.
 
-The page (``index.html``) is self-contained apart from the PNGs next to it: no
-JavaScript, no network.  Figures:
+The page (``index.html``) is self-contained apart from the figure files next
+to it: no JavaScript, no network.  Figures:
 
 ``overlay.png``
     The change mask (red) and its outlines on the registered reference, tile
     grid drawn faintly; rendered pixel for pixel at the downsampled size, so
     the file never holds more than ``max_pixels`` pixels.
-``trajectory.png``
+``trajectory.svg``
     Per-row pose, one panel per axis: the fused path and each tile column's own;
     an axis that is zero on every row gets no panel, only a note (figure and
-    caption).
-``gain.png``, ``agreement.png``
-    Per-tile maps with their values written in the cells.
+    caption).  Vector lines and text, drawn by the browser.
+``gain.svg``, ``agreement.svg``
+    Per-tile maps with their values written in the cells (a store of more
+    than one tile).
 ``change_score.png``
-    The change score, downsampled, one value per PNG pixel, with the threshold
-    marked on the colorbar.
+    The change score, downsampled, one value per PNG pixel; the page draws it
+    in an SVG frame of axes and a colorbar with the threshold marked.
 
 The figures and the block reduction that keeps them small are
-:mod:`._report_figures`; the page is :mod:`._report_html`.
+:mod:`._report_figures`, their SVG drawing :mod:`._report_svg`; the page is
+:mod:`._report_html`.
 """
 
 import logging
@@ -38,6 +40,8 @@ log = logging.getLogger("rsmb")
 
 DEFAULT_MAX_PIXELS = 2048 * 2048
 _REQUIRED = ("change_mask", "change_score", "registered", "trajectory", "gain")
+# written by earlier versions: removed on overwrite, not left to look current
+_OLD_FIGURES = ("trajectory.png", "gain.png", "agreement.png")
 
 
 # --------------------------------------------------------------------------- public
@@ -51,7 +55,7 @@ def write_report(store, out_dir=None, *, max_pixels=DEFAULT_MAX_PIXELS, overwrit
     store : str or path-like
         A finished output store of :func:`pipeline.detect`.
     out_dir : str or path-like, optional
-        Directory to write ``index.html`` and the PNGs into; default
+        Directory to write ``index.html`` and the figures into; default
         ``<store>.report`` next to the store.
     max_pixels : int
         Most pixels of a downsampled mosaic: ``overlay.png`` holds at most this
@@ -111,6 +115,6 @@ def _prepare_out_dir(store, out_dir, overwrite):
     tiles.check_writable(out / "index.html")
     out.mkdir(parents=True, exist_ok=True)
     if overwrite:
-        for name in FIGURES + ("index.html",):
+        for name in FIGURES + _OLD_FIGURES + ("index.html",):
             (out / name).unlink(missing_ok=True)
     return out

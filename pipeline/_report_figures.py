@@ -1,12 +1,13 @@
-"""The figures of ``rsmb report``: PNGs drawn from a detect store, and the block
+"""The figures of ``rsmb report``, drawn from a detect store, and the block
 reduction that keeps them small.
 
 Large mosaics are reduced band by band straight from zarr (block mean for
 images, block maximum for the mask and the score so that small changes stay
-visible): one full-resolution array is never loaded whole.  The overlay is
-rendered pixel for pixel at the downsampled size, and so is the score image
-inside its matplotlib frame; the other figures are drawn with matplotlib's
-object API (no pyplot, no global state) on fixed margins.
+visible): one full-resolution array is never loaded whole.  The overlay and
+the score are PNGs rendered pixel for pixel at the downsampled size; the
+trajectory, the per-tile maps and the score's frame (axes, colorbar,
+threshold) are SVG text (:mod:`._report_svg`), drawn by the browser.
+Matplotlib only lends its colormaps.
 """
 
 import math
@@ -15,8 +16,11 @@ import numpy as np
 
 from rsmb.ops import ParameterError
 
-FIGURES = ("overlay.png", "trajectory.png", "gain.png", "agreement.png", "change_score.png")
+from ._report_svg import score_frame_svg, tile_map_svg, trajectory_svg
+
+FIGURES = ("overlay.png", "trajectory.svg", "gain.svg", "agreement.svg", "change_score.png")
 _SCORE_SIDE = 1024  # the score figure shows a value per PNG pixel (or a square of them), at most this many a side
+_TRAJECTORY_WIDTH = 1000  # px
 
 # overlay colours, RGB in [0, 1]
 _NAN_RGB = np.array([0.16, 0.18, 0.32])
@@ -26,8 +30,9 @@ _EDGE_RGB = np.array([1.00, 0.92, 0.15])
 _GRID_ALPHA = 0.35
 _MASK_ALPHA = 0.45
 
-_DPI = 100  # matplotlib figures: pixels per inch
-# zlib level of every PNG: higher levels cost much more CPU on the photo-like overlay for a file hardly smaller
+# zlib level of every PNG: higher levels cost much more CPU on the photo-like overlay for a file hardly smaller;
+# lower ones do not pay either: level 1 is as slow (Pillow's row filtering is a good part of the cost) and
+# level 0 saves about half the encoding for a file more than three times larger
 _PNG_LEVEL = 2
 
 
@@ -41,29 +46,32 @@ def write_figures(group, attrs, out, factor):
     attrs : dict
         Its root attributes.
     out : pathlib.Path
-        Directory to write the PNGs into.
+        Directory to write the figures into.
     factor : int
         Downsampling factor of the overlay (pixels per PNG pixel on a side).
 
     Returns
     -------
     figures : dict
-        File name -> ``{"size": (width, height)}`` in PNG pixels (and ``"vmax"``
-        for the score figure, ``"flat_axes"``, the labels of the pose axes that
-        are zero on every row and have no panel, for the trajectory); ``agreement.png`` is missing when the store has
-        no ``tile_agreement``, both it and ``gain.png`` for a store of one tile
-        (its gain is in the summary; one tile agrees with itself).
+        File name -> ``{"size": (width, height)}`` in pixels of the PNG or the
+        SVG's user space, and for the trajectory ``"flat_axes"``, the labels of
+        the pose axes that are zero on every row and have no panel; for the
+        score ``"vmax"``, ``"zoom"`` and its ``"frame"``, an ``<svg>`` element
+        for the page, of ``"frame_size"``.  ``agreement.svg`` is missing when
+        the store has no ``tile_agreement``, both it and ``gain.svg`` for a
+        store of one tile (its gain is in the summary; one tile agrees with
+        itself).
     score_factor : int
         Downsampling factor of the score figure (at least ``factor``; the figure
         shows at most 1024 values a side).
     """
     figures = {}
     figures["overlay.png"] = _write_overlay(group, attrs["tile_grid"], factor, out / "overlay.png")
-    figures["trajectory.png"] = _write_trajectory(group, attrs, out / "trajectory.png")
+    figures["trajectory.svg"] = _write_trajectory(group, attrs, out / "trajectory.svg")
     if list(attrs["tile_grid"]["tiles"]) != [1, 1]:  # one tile: its gain is in the summary, no agreement
-        figures["gain.png"] = _write_gain(group, attrs, out / "gain.png")
+        figures["gain.svg"] = _write_gain(group, attrs, out / "gain.svg")
         if "tile_agreement" in group:
-            figures["agreement.png"] = _write_agreement(group, attrs, out / "agreement.png")
+            figures["agreement.svg"] = _write_agreement(group, attrs, out / "agreement.svg")
     shape = tuple(group["change_score"].shape)
     score_factor = max(factor, math.ceil(shape[0] / _SCORE_SIDE), math.ceil(shape[1] / _SCORE_SIDE))
     figures["change_score.png"] = _write_score(group, attrs, score_factor, out / "change_score.png")
@@ -227,95 +235,38 @@ def _write_overlay(group, grid, factor, path):
     return _write_png(rgb, path)
 
 
-# --------------------------------------------------------------------------- matplotlib figures
-#
-# Figures are laid out with fixed margins in pixels, sized from the font (no
-# constrained layout: its tight-bbox passes would cost more than the drawing),
-# drawn once and written by pillow.
-
-
-def _font_px():
-    """Height of the default font, figure pixels."""
-    from matplotlib import rcParams
-
-    return rcParams["font.size"] * _DPI / 72.0
-
-
-def _figure(width, height):
-    """A figure of ``width`` x ``height`` pixels on an Agg canvas, no layout engine."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(width / _DPI, height / _DPI), dpi=_DPI)
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _add_axes(fig, left, top, width, height, **kwargs):
-    """Axes whose box is ``width`` x ``height`` pixels at ``(left, top)`` pixels
-    from the figure's top-left corner."""
-    w, h = fig.canvas.get_width_height()
-    return fig.add_axes((left / w, 1.0 - (top + height) / h, width / w, height / h), **kwargs)
-
-
-def _render(fig):
-    """Draw ``fig`` once and return its pixels, uint8 RGB, shape (height, width, 3).
-
-    The figure is left to the garbage collector: ``fig.clear()`` would rebuild
-    every axes' ticks only to drop them."""
-    fig.canvas.draw()
-    return np.array(np.asarray(fig.canvas.buffer_rgba())[..., :3])
+# --------------------------------------------------------------------------- PNG
 
 
 def _write_png(rgb, path):
-    """Write uint8 RGB pixels as a PNG (RGB, not matplotlib's RGBA: a quarter
-    fewer bytes to compress); return the figure entry ``{"size": (w, h)}``."""
+    """Write uint8 RGB pixels as a PNG; return the figure entry ``{"size": (w, h)}``."""
     from PIL import Image
 
     Image.fromarray(rgb, mode="RGB").save(path, compress_level=_PNG_LEVEL)
     return {"size": (rgb.shape[1], rgb.shape[0])}
 
 
-def _save(fig, path):
-    return _write_png(_render(fig), path)
-
-
 # --------------------------------------------------------------------------- trajectory
+
+_TAB10 = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22",
+          "#17becf")  # matplotlib's tab10, the tile columns' colours up to 10 columns
 
 
 def _write_trajectory(group, attrs, path):
-    """One panel per pose axis that is not zero on every row; the others are
-    named in a note under the panels (and returned as ``"flat_axes"``)."""
+    """``trajectory.svg``: one panel per pose axis that is not zero on every
+    row; the others are named in a note under the panels (and returned as
+    ``"flat_axes"``)."""
     traj = np.asarray(group["trajectory"][:], dtype=np.float64)
     per_tile = np.asarray(group["tile_trajectory"][:], dtype=np.float64) if "tile_trajectory" in group else None
     labels = _axis_labels(group, attrs, traj.shape[1])
     drawn, flat = flat_axes_split(traj, per_tile)
-    fs = _font_px()
-    left, right, top, gap, panel = 6.5 * fs, 1.5 * fs, 4.2 * fs, 0.9 * fs, 170
-    bottom = 3.4 * fs + (1.6 * fs if flat else 0.0)
-    width = 1000
-    fig = _figure(width, round(top + len(drawn) * panel + (len(drawn) - 1) * gap + bottom))
-    ncols = 0 if per_tile is None else per_tile.shape[1]
-    colors = _tile_colors(ncols)
-    rows = np.arange(traj.shape[0], dtype=np.float64)
-    edges = list(attrs["tile_grid"]["row_edges"][1:-1])
-    panels = []
-    for i, d in enumerate(drawn):
-        ax = _add_axes(fig, left, top + i * (panel + gap), width - left - right, panel,
-                       sharex=panels[0] if panels else None)
-        _trajectory_panel(ax, rows, traj[:, d], None if per_tile is None else per_tile[:, :, d], colors, edges)
-        ax.set_ylabel(labels[d])
-        ax.tick_params(labelbottom=i == len(drawn) - 1)
-        panels.append(ax)
-    panels[-1].set_xlabel("row (px); dashed: tile-row boundaries")
-    fig.text(0.5, 1.0 - 0.4 * fs / fig.bbox.height, "Per-row camera pose (centroid)", ha="center", va="top",
-             fontsize="large")
-    _trajectory_legend(fig, colors, 2.0 * fs)
-    if flat:
-        names = ", ".join(labels[d] for d in flat)
-        fig.text(left / width, 0.4 * fs / fig.bbox.height, f"Not drawn, zero on every row: {names}",
-                 ha="left", va="bottom", fontsize="small")
-    return {**_save(fig, path), "flat_axes": [labels[d] for d in flat]}
+    colors = _tile_colors(0 if per_tile is None else per_tile.shape[1])
+    svg, height = trajectory_svg(np.arange(traj.shape[0], dtype=np.float64), traj[:, drawn],
+                                 None if per_tile is None else per_tile[:, :, drawn], [labels[d] for d in drawn],
+                                 colors, list(attrs["tile_grid"]["row_edges"][1:-1]),
+                                 flat=[labels[d] for d in flat], width=_TRAJECTORY_WIDTH)
+    path.write_text(svg, encoding="utf-8")
+    return {"size": (_TRAJECTORY_WIDTH, height), "flat_axes": [labels[d] for d in flat]}
 
 
 def flat_axes_split(traj, per_tile=None):
@@ -356,123 +307,43 @@ def _axis_labels(group, attrs, count):
     return labels
 
 
-def _trajectory_panel(ax, rows, fused, per_tile, colors, edges):
-    """One axis: the tile columns' paths as one line collection, the fused path
-    on top, tile-row boundaries dashed; limits set here, no autoscaling."""
-    from matplotlib.collections import LineCollection
-    from matplotlib.ticker import MaxNLocator
-
-    if per_tile is not None and per_tile.shape[1]:
-        segments = [np.column_stack([rows, per_tile[:, tx]]) for tx in range(per_tile.shape[1])]
-        ax.add_collection(LineCollection(segments, colors=colors, linewidths=0.8,
-                                         alpha=0.85 if len(colors) <= 10 else 0.5), autolim=False)
-    ax.plot(rows, fused, color="black", lw=1.6, scalex=False, scaley=False)
-    if edges:
-        ax.vlines(edges, 0.0, 1.0, transform=ax.get_xaxis_transform(), colors="0.45", lw=0.8, linestyles="--")
-    ax.set_xlim(rows[0], max(rows[-1], rows[0] + 1.0))
-    ax.set_ylim(*_padded_range(fused if per_tile is None else np.concatenate([fused, per_tile.ravel()])))
-    ax.yaxis.set_major_locator(MaxNLocator(nbins=5, steps=[1, 2, 2.5, 5, 10]))  # 4 to 6 ticks: each is costly to draw
-    ax.grid(True, color="0.9", lw=0.6)
-
-
-def _padded_range(values):
-    """Axis limits around the finite ``values`` with 5 % room (a flat or empty
-    series gets a unit-wide range)."""
-    finite = values[np.isfinite(values)]
-    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 0.0)
-    pad = 0.05 * (hi - lo) if hi > lo else max(0.5, 0.05 * abs(lo))
-    return lo - pad, hi + pad
-
-
 def _tile_colors(n):
+    """CSS colours of ``n`` tile columns: tab10, or viridis beyond 10."""
+    if n <= 10:
+        return list(_TAB10[:n])
     from matplotlib import colormaps
 
-    cmap = colormaps["tab10" if n <= 10 else "viridis"]
-    return [cmap(i if n <= 10 else i / max(n - 1, 1)) for i in range(n)]
-
-
-def _trajectory_legend(fig, colors, top):
-    """Fused first, then one entry per tile column (one for all beyond 8)."""
-    from matplotlib.lines import Line2D
-
-    handles = [Line2D([], [], color="black", lw=1.6)]
-    labels = ["fused"]
-    if len(colors) > 8:
-        handles.append(Line2D([], [], color=colors[len(colors) // 2], lw=0.8))
-        labels.append(f"tile columns 0..{len(colors) - 1}")
-    else:
-        handles += [Line2D([], [], color=c, lw=0.8) for c in colors]
-        labels += [f"tile column {tx}" for tx in range(len(colors))]
-    fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 1.0 - top / fig.bbox.height),
-               ncol=len(handles), fontsize=9, frameon=False, borderaxespad=0.0)
+    rgb = colormaps["viridis"](np.linspace(0.0, 1.0, n), bytes=True)[:, :3]
+    return ["#{:02x}{:02x}{:02x}".format(*c) for c in rgb.tolist()]
 
 
 # --------------------------------------------------------------------------- per-tile maps
 
 
-def _tile_map(values, *, title, label, fmt, cmap, vmin=None, vmax=None, marked=(), marked_label=None,
-              line=None):
-    """Figure of a (tiles_y, tiles_x) map with its values written in the cells."""
+def _write_tile_map(values, path, *, cmap, lo=None, hi=None, **kwargs):
+    """A ``(tiles_y, tiles_x)`` map as SVG (:func:`tile_map_svg`), coloured by
+    ``cmap`` from ``lo`` to ``hi`` (default: the finite values' range, widened
+    around a single value)."""
     from matplotlib import colormaps
-    from matplotlib.patches import Patch, Rectangle
-    from matplotlib.ticker import ScalarFormatter
 
-    ny, nx = values.shape
-    fs = _font_px()
-    width = round(_DPI * min(11.0, max(6.4, 0.95 * nx + 2.6)))
-    height = round(_DPI * min(10.0, max(3.6, 0.8 * ny + 1.8)))
-    legend = bool(marked and marked_label)
-    left, top, bar_w, bar_room = 5.0 * fs, 2.4 * fs, 0.9 * fs, 7.5 * fs
-    bottom = 3.4 * fs + (1.6 * fs if legend else 0.0)
-    fig = _figure(width, height)
-    ax = _add_axes(fig, left, top, width - left - bar_room - bar_w - 1.2 * fs, height - top - bottom)
-    cax = _add_axes(fig, width - bar_room - bar_w, top, bar_w, height - top - bottom)
-    image = ax.imshow(np.ma.masked_invalid(values), cmap=colormaps[cmap].with_extremes(bad="0.85"),
-                      vmin=vmin, vmax=vmax, interpolation="nearest", aspect="auto")
-    bar = fig.colorbar(image, cax=cax, label=label if line is None else f"{label}; line: {line[1]}")
-    bar.formatter = ScalarFormatter(useOffset=False)
-    bar.update_ticks()
-    if line is not None:
-        bar.ax.axhline(line[0], color="black", lw=2)
-    _annotate_cells(ax, image, values, fmt)
-    for ty, tx in marked:
-        ax.add_patch(Rectangle((tx - 0.47, ty - 0.47), 0.94, 0.94, fill=False, ec="red", lw=2.5, ls="--"))
-    if legend:
-        fig.legend([Patch(fill=False, ec="red", lw=2, ls="--")], [marked_label], loc="lower center",
-                   bbox_to_anchor=(0.5, 0.2 * fs / height), fontsize=9, frameon=False, borderaxespad=0.0)
-    ax.set_xticks(_ticks(nx))
-    ax.set_yticks(_ticks(ny))
-    ax.set_xlabel("tile column (tile_x)")
-    ax.set_ylabel("tile row (tile_y)")
-    ax.set_title(title)
-    return fig
-
-
-def _ticks(n):
-    return list(range(0, n, max(1, math.ceil(n / 16))))
-
-
-def _annotate_cells(ax, image, values, fmt):
-    ny, nx = values.shape
-    if ny * nx > 400:
-        return
-    size = 10 if ny * nx <= 36 else (8 if ny * nx <= 144 else 6)
-    for ty in range(ny):
-        for tx in range(nx):
-            v = values[ty, tx]
-            if not np.isfinite(v):
-                ax.text(tx, ty, "n/a", ha="center", va="center", fontsize=size, color="0.3")
-                continue
-            r, g, b, _ = image.cmap(image.norm(v))
-            color = "black" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "white"
-            ax.text(tx, ty, format(float(v), fmt), ha="center", va="center", fontsize=size, color=color)
+    finite = values[np.isfinite(values)]
+    lo = (float(finite.min()) if finite.size else 0.0) if lo is None else lo
+    hi = (float(finite.max()) if finite.size else 1.0) if hi is None else hi
+    if hi <= lo:
+        pad = max(1e-3 * abs(lo), 1e-6)
+        lo, hi = lo - pad, hi + pad
+    with np.errstate(invalid="ignore"):
+        colors = colormaps[cmap]((values - lo) / (hi - lo), bytes=True)[..., :3]
+    stops = colormaps[cmap](np.linspace(0.0, 1.0, 33), bytes=True)[:, :3]
+    svg, width, height = tile_map_svg(values, colors, stops, lo=lo, hi=hi, **kwargs)
+    path.write_text(svg, encoding="utf-8")
+    return {"size": (width, height)}
 
 
 def _write_gain(group, attrs, path):
     gain = np.asarray(group["gain"][:], dtype=np.float64)
-    fig = _tile_map(gain, title="Illumination gain per tile", label="gain (capture / reference)",
-                    fmt=".4f", cmap="cividis")
-    return _save(fig, path)
+    return _write_tile_map(gain, path, cmap="cividis", title="Illumination gain per tile",
+                           label="gain (capture / reference)", fmt=".4f")
 
 
 def _write_agreement(group, attrs, path):
@@ -482,11 +353,10 @@ def _write_agreement(group, attrs, path):
     tolerance = (attrs.get("parameters") or {}).get("agreement")
     finite = agree[np.isfinite(agree)]
     top = max([float(finite.max()) if finite.size else 0.0] + ([1.2 * tolerance] if tolerance else []))
-    fig = _tile_map(agree, title="Tile path vs fused path", label="disagreement (px)",
-                    fmt=".2f", cmap="magma_r", vmin=0.0, vmax=max(top, 1e-3), marked=resolved,
-                    marked_label="re-solved around the other tiles' path",
-                    line=(tolerance, f"tolerance {tolerance:g} px") if tolerance else None)
-    return _save(fig, path)
+    return _write_tile_map(agree, path, cmap="magma_r", lo=0.0, hi=max(top, 1e-3), title="Tile path vs fused path",
+                           label="disagreement (px)", fmt=".2f", marked=resolved,
+                           marked_label="re-solved around the other tiles' path",
+                           line=(tolerance, f"tolerance {tolerance:g} px") if tolerance else None)
 
 
 # --------------------------------------------------------------------------- change score
@@ -504,55 +374,22 @@ def _score_vmax(score, threshold):
 
 
 def _write_score(group, attrs, factor, path):
-    """The block-maximum score, one value per PNG pixel (a square of ``zoom``
-    pixels when the map is small), coloured with numpy (matplotlib would
-    resample it), in a matplotlib frame of axes, title and colorbar drawn
-    around an empty box the image is pasted into."""
+    """``change_score.png``: the block-maximum score, one value per PNG pixel,
+    coloured with numpy (no resampling); its frame (axes, title, colorbar with
+    the threshold) is SVG for the page, the image drawn ``zoom`` times larger
+    when the map is small.
+
+    Returns the figure entry: ``"size"`` of the PNG, ``"vmax"``, ``"zoom"`` and
+    ``"frame"`` (the ``<svg>`` element) with ``"frame_size"`` (its width and
+    height, px)."""
     score = block_reduce(group["change_score"], factor, "max")
     threshold = (attrs.get("summary") or {}).get("threshold")
     zoom = max(1, min(512 // min(score.shape), _SCORE_SIDE // max(score.shape)))
     vmax = _score_vmax(score, threshold)
-    pixels = _score_rgba(score, vmax)[..., :3].repeat(zoom, axis=0).repeat(zoom, axis=1)
-    h, w = pixels.shape[:2]
-    fig, (left, top) = _score_frame(h, w, factor, zoom, vmax, threshold)
-    rgb = _render(fig)
-    rgb[top:top + h, left:left + w] = pixels
-    return {**_write_png(rgb, path), "vmax": vmax}
-
-
-def _score_frame(h, w, factor, zoom, vmax, threshold):
-    """Figure with a transparent ``w`` x ``h`` px axes box (1 px inside its
-    spines) in full-resolution pixel coordinates (a score value is ``factor``
-    of them a side and ``zoom`` figure pixels), and the colorbar.
-
-    Returns the figure and the box's top-left corner ``(left, top)``, pixels
-    from the figure's top-left corner."""
-    from matplotlib import colormaps
-    from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import Normalize
-
-    fs = _font_px()
-    left, top, bottom = round(5.5 * fs), round(2.4 * fs), round(3.4 * fs)
-    bar_w, bar_room = round(1.4 * fs), round(7.0 * fs)
-    bar_h = max(h + 2, round(29 * fs))  # room for the colorbar's label beside a short image
-    width = max(left + w + 2 + round(1.6 * fs) + bar_w + bar_room, 640)
-    height = top + max(h + 2 + bottom, bar_h + round(1.0 * fs))
-    fig = _figure(width, height)
-    ax = _add_axes(fig, left - 1, top - 1, w + 2, h + 2)
-    ax.patch.set_visible(False)
-    scale = factor / zoom  # full-resolution pixels per figure pixel
-    ax.set_xlim(-0.5 - scale, w * scale - 0.5 + scale)
-    ax.set_ylim(h * scale - 0.5 + scale, -0.5 - scale)
-    ax.set_xlabel("column (px)")
-    ax.set_ylabel("row (px)")
-    ax.set_title("Change score" + (f" (block maximum of {factor} x {factor} px)" if factor > 1 else ""))
-    cax = _add_axes(fig, left + w + 2 + round(1.6 * fs), top - 1, bar_w, bar_h)
-    label = "change score (intensity units)" + ("; cyan line: threshold" if threshold is not None else "")
-    bar = fig.colorbar(ScalarMappable(Normalize(0.0, vmax), colormaps["inferno"]), cax=cax, label=label,
-                       extend="max")
-    if threshold is not None:
-        bar.ax.axhline(threshold, color="cyan", lw=2)
-    return fig, (left, top)
+    entry = _write_png(_score_rgba(score, vmax)[..., :3], path)
+    frame, width, height = score_frame_svg(path.name, entry["size"], factor=factor, zoom=zoom, vmax=vmax,
+                                           threshold=threshold, stops=_colormap_stops(33))
+    return {**entry, "vmax": vmax, "zoom": zoom, "frame": frame, "frame_size": (width, height)}
 
 
 def _score_rgba(score, vmax):
@@ -562,3 +399,10 @@ def _score_rgba(score, vmax):
 
     with np.errstate(invalid="ignore"):
         return colormaps["inferno"].with_extremes(bad="white")(score / np.float32(vmax), bytes=True)
+
+
+def _colormap_stops(n):
+    """``n`` colours of inferno evenly from its bottom to its top, uint8 RGB, shape (n, 3)."""
+    from matplotlib import colormaps
+
+    return colormaps["inferno"](np.linspace(0.0, 1.0, n), bytes=True)[:, :3]

@@ -1,8 +1,11 @@
 """The HTML page of ``rsmb report``: inputs, summary, figures with captions,
 timings, parameters and georeferencing of one detect store.
 
-Self-contained apart from the PNGs next to it: no JavaScript, no network; every
-value from the store is escaped.
+Self-contained apart from the figure files next to it: no JavaScript, no
+network; every value from the store is escaped.  Figures are ``<img>`` elements
+with their size, except the change score: its PNG is drawn inside an inline
+``<svg>`` frame (axes, colorbar) made by :mod:`._report_svg`, since an SVG
+shown as an image may not load another file.
 """
 
 import datetime
@@ -24,7 +27,8 @@ th, td { border: 1px solid #ddd; padding: 0.25em 0.6em; text-align: left; vertic
 th { background: #f4f4f4; } td.num { text-align: right; font-variant-numeric: tabular-nums; }
 code, .mono { font-family: ui-monospace, Menlo, Consolas, monospace; font-size: 0.9em; word-break: break-all; }
 figure { margin: 1.2em 0 2em; } figcaption { font-size: 0.92em; color: #444; max-width: 900px; margin-top: 0.4em; }
-img { max-width: 100%; height: auto; border: 1px solid #ccc; }
+img, svg.figure { max-width: 100%; height: auto; border: 1px solid #ccc; }
+svg.figure { background: #fff; }
 img.pixels { image-rendering: pixelated; }
 .meta { color: #666; font-size: 0.9em; }
 pre { white-space: pre-wrap; font-size: 0.8em; background: #f8f8f8; padding: 0.5em; }
@@ -168,11 +172,11 @@ def _captions(attrs, factor, score_factor, flat_axes=()):
                 if score_factor > 1 else ""))
     return {
         "overlay.png": overlay,
-        "trajectory.png": "Per-row camera pose in global pose coordinates, one panel per axis. Black: the fused "
+        "trajectory.svg": "Per-row camera pose in global pose coordinates, one panel per axis. Black: the fused "
                           "trajectory (median over tiles of solved rows); thin coloured lines: each tile column's "
                           "own estimate; dashed verticals: tile-row boundaries." + flat,
-        "gain.png": "Illumination gain of the capture against the reference, one value per tile.",
-        "agreement.png": agreement,
+        "gain.svg": "Illumination gain of the capture against the reference, one value per tile.",
+        "agreement.svg": agreement,
         "change_score.png": score,
     }
 
@@ -181,14 +185,18 @@ def _figures_html(figures, captions, one_tile=False):
     parts = []
     for name in FIGURES:
         if name not in figures:
-            why = ("one tile: its gain is in the summary" if name in ("gain.png", "agreement.png")
+            why = ("one tile: its gain is in the summary" if name in ("gain.svg", "agreement.svg")
                    and one_tile else "the store has no data for it")
             parts.append(f"<p>{_esc(name)}: not available ({why}).</p>")
             continue
-        w, h = figures[name]["size"]
-        cls = ' class="pixels"' if name == "overlay.png" else ""
-        parts.append(f'<figure id="{_esc(name[:-4])}"><a href="{_esc(name)}"><img src="{_esc(name)}"{cls} '
-                     f'width="{w}" height="{h}" alt="{_esc(name)}"></a>'
+        entry = figures[name]
+        if "frame" in entry:  # an <svg> drawing the PNG inside its axes
+            shown = entry["frame"].replace("<svg ", f'<svg class="figure" role="img" aria-label="{_esc(name)}" ', 1)
+        else:
+            w, h = entry["size"]
+            cls = ' class="pixels"' if name == "overlay.png" else ""
+            shown = f'<img src="{_esc(name)}"{cls} width="{w}" height="{h}" alt="{_esc(name)}">'
+        parts.append(f'<figure id="{_esc(name[:-4])}"><a href="{_esc(name)}">{shown}</a>'
                      f"<figcaption>{_esc(captions[name])}</figcaption></figure>")
     return "\n".join(parts)
 
@@ -207,7 +215,7 @@ def html_page(store, attrs, group, figures, factor, score_factor):
         "<h2>Inputs</h2>", _inputs_table(attrs),
         "<h2>Summary</h2>", _summary_table(summary), _row_state_table(group),
         "<h2>Figures</h2>", _figures_html(figures, _captions(attrs, factor, score_factor,
-                                                       figures.get("trajectory.png", {}).get("flat_axes", ())),
+                                                       figures.get("trajectory.svg", {}).get("flat_axes", ())),
                                              list(attrs.get("tile_grid", {}).get("tiles", [])) == [1, 1]),
         "<h2>Timings</h2>", _timings_table(summary.get("timings") or {}),
         "<h2>Parameters</h2>", _table(param_rows, ["parameter", "value"]),
