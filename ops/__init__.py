@@ -15,6 +15,7 @@ from ._changes import (
     change_candidates,
     change_mask,
     change_score,
+    clipped_score,
     change_threshold,
     changes_to_reference,
     detect_changes,
@@ -27,7 +28,7 @@ from ._changes import (
 from ._errors import InputError, ParameterError, RSMBError, RunError, SolverError
 from ._forward import CameraPath, RenderResult, render
 from ._intensity import IntensityScale, intensity_scale
-from ._depthmap import DepthMapParams, DepthMapResult, depth_map
+from ._depthmap import DepthMapParams, DepthMapResult, depth_map, model_values
 from ._depthsolve import AlternateParams, depth_step
 from ._layers import LayerParams, LayerResult, depth_layers
 from ._metrics import ConfusionCounts, confusion, trajectory_rmse
@@ -44,7 +45,7 @@ from ._threshold import kapur_threshold, kapur_threshold_histogram
 
 #: Version of the kernels' results: raised whenever a change to ops alters what
 #: a run computes, so that ``--resume`` never mixes tiles of two versions.
-KERNEL_VERSION = 5
+KERNEL_VERSION = 6
 
 __all__ = [
     "KERNEL_VERSION",
@@ -70,6 +71,7 @@ __all__ = [
     "DepthMapParams",
     "DepthMapResult",
     "depth_map",
+    "model_values",
     "AlternateParams",
     "depth_step",
     "Registration",
@@ -88,6 +90,7 @@ __all__ = [
     "ChangeResult",
     "detect_changes",
     "change_score",
+    "clipped_score",
     "ScoreHistogram",
     "score_histogram",
     "change_threshold",

@@ -34,7 +34,7 @@ from ._camera import full_poses
 from ._oracle import optimal_chi
 from ._warp import _bilinear, _inverse_map
 
-__all__ = ["DepthMapParams", "DepthMapResult", "depth_map"]
+__all__ = ["DepthMapParams", "DepthMapResult", "depth_map", "model_values"]
 
 
 @dataclass(frozen=True)
@@ -153,6 +153,31 @@ def depth_map(registration, reference, distorted, *, camera, threshold, referenc
     out.explained = take & (residual > tau) & (np.abs(g - out.registered) <= tau)
     out.depths = len(qs)
     return out
+
+
+def model_values(registration, reference, mask, *, camera, reference_origin_yx=(0, 0), distorted_origin_yx=(0, 0)):
+    """The registration's model at the pixels of ``mask``, whatever the
+    capture holds there: each row's weighted poses applied to the reference
+    (the registered plane), times the column gain.
+
+    Parameters
+    ----------
+    registration : Registration
+    reference : ndarray, shape (Hr, Wr), float32
+        The reference window the registration used (NaN for no-data).
+    mask : ndarray of bool, shape (H, W)
+    camera : Camera
+    reference_origin_yx, distorted_origin_yx : tuple of int
+
+    Returns
+    -------
+    ndarray of float32, shape (H, W)
+        NaN off ``mask``, in rows without weights and where a pose leaves
+        valid reference data.
+    """
+    rows = _RowPoses.of(registration, mask.shape[0])
+    return rows.render(np.ascontiguousarray(reference, np.float32),
+                       _geometry(camera, reference_origin_yx, distorted_origin_yx), 1.0, np.asarray(mask, bool))
 
 
 def _active(residual, valid, tau, window):

@@ -6,8 +6,11 @@ any units, with any offset.  The rule, applied to the reference and the
 capture alike:
 
 1. **Clipped pixels.**  A pixel at a sensor's saturation value or at zero
-   says nothing about the scene: it is no-data, left out of the row solves
-   and never reported as change.  On the ingested luminance (integers divided
+   says only that the scene was at least (at most) that bright: it is left
+   out of the row solves, and a capture's clipped pixel is change only where
+   the registered model stays clearly below that level
+   (:func:`ops.clipped_score`; a reference's clipped pixel carries no
+   evidence).  On the ingested luminance (integers divided
    by their dtype's maximum, floats as they are) an image's largest valid
    value is a saturation value when it is 1 (an integer input at its
    dtype's maximum, or float data on [0, 1]) or ``(2**k - 1) / 65535`` for k
@@ -75,6 +78,10 @@ class IntensityScale:
             out[values >= np.float32(high)] = np.nan
         return out
 
+    def scaled(self, value):
+        """One ingested value (a clip level) on the common scale."""
+        return float(np.float32(value) * np.float32(SPAN / (self.hi - self.lo)))
+
     def to_input(self, values):
         """Values on the common scale back in the ingested units."""
         return np.asarray(values, dtype=np.float32) * np.float32((self.hi - self.lo) / SPAN)
@@ -82,7 +89,8 @@ class IntensityScale:
     def as_dict(self):
         return {"rule": f"x' = x * {SPAN} / (hi - lo) from the pooled unclipped values of both images "
                         f"(percentiles {LOW_PERCENTILE} and {HIGH_PERCENTILE}); pixels at a saturation value "
-                        "(1, or (2**k - 1) / 65535 for k in 10..15) or at 0 are clipped (no-data)",
+                        "(1, or (2**k - 1) / 65535 for k in 10..15) or at 0 are clipped (left out of the row solves; "
+                        "a clipped capture pixel is change only where the model stays clearly short of the clip level)",
                 "lo": self.lo, "hi": self.hi, "reference_clip": list(self.reference_clip),
                 "capture_clip": list(self.capture_clip), "reference_clipped": self.reference_clipped,
                 "capture_clipped": self.capture_clipped}

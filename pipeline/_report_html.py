@@ -50,8 +50,8 @@ _SUMMARY_LABELS = {
     "tasks_per_tile": "tasks per tile",
     "megapixels_per_s": "throughput, megapixels/s",
     "failed_rows": "failed tile rows (no fit, or unconverged)",
-    "clipped_reference": "clipped fraction of the reference (no-data)",
-    "clipped_capture": "clipped fraction of the capture (no-data)",
+    "clipped_reference": "clipped fraction of the reference (no evidence)",
+    "clipped_capture": "clipped fraction of the capture (one-sided evidence only)",
 }
 
 

@@ -182,6 +182,9 @@ def register_task(store, tile, camera, params, changes, prior=None):
     layers = _depth_layers(result, reference, capture, camera, tile, params, changes)
     score = ops.change_score(layers.chi, layers.registered, params=changes)
     score = np.where(result.valid, np.where(layers.parallax, 0.0, score), np.nan)  # NaN: unknown
+    clipped = _clipped_score(store, tile, result, reference, camera, params)
+    if clipped is not None:
+        score = np.where(np.isfinite(clipped), clipped, score)
     residual = np.where(result.valid, distorted - layers.registered, 0.0)
     hist = ops.score_histogram(residual, score, result.valid)
     write_start = time.perf_counter()
@@ -197,6 +200,26 @@ def register_task(store, tile, camera, params, changes, prior=None):
         [hist.residual, hist.score, [result.gain, seconds, 1.0]])
     return {"index": tile.index, "seconds": seconds, "read_s": read, "write_s": time.perf_counter() - write_start,
             "kernel_s": write_start - start - read, "pixels": h * w, "gain": result.gain}
+
+
+def _clipped_score(store, tile, result, reference, camera, params):
+    """The one-sided score of the tile's clipped capture pixels
+    (:func:`ops.clipped_score`: change only where the registration's model is
+    clearly below the saturation value, or above the floor), or None when the
+    capture has no clip level or none of its pixels sits at one."""
+    if store.intensity is None or store.intensity.capture_clip == (None, None):
+        return None
+    low, high = store.intensity.capture_clip
+    raw = read_padded(_array(store, "ingest/distorted"), *tile.core)
+    at_high = raw >= np.float32(high) if high is not None else np.zeros(raw.shape, bool)
+    at_low = raw <= np.float32(low) if low is not None else np.zeros(raw.shape, bool)
+    if not (at_high.any() or at_low.any()):
+        return None
+    model = ops.model_values(result, reference, at_high | at_low, camera=camera,
+                             reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin)
+    return ops.clipped_score(model, at_high, at_low, saturation=store.intensity.scaled(high if high is not None else 1.0),
+                             floor=store.intensity.scaled(low if low is not None else 0.0),
+                             lambda_chi=params.lambda_chi)
 
 
 def _depth_layers(result, reference, capture, camera, tile, params, changes):
