@@ -335,32 +335,26 @@ def _one_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, q, k,
     the window's range of them) are rendered, and only such active pixels are
     evaluated."""
     height, width = err.shape
-    per_column = gain.shape[0] == width
     area = float((2 * half + 1) * (2 * half + 1))
 
-    def needed(i, j):
-        return render_mask[i, j] != 0 and (stride < 0 or (lo[i, j] - stride < k < hi[i, j] + stride))
-
+    want = np.zeros((height, width), np.uint8)
     for i in range(height):
-        s0, s1 = offsets[i], offsets[i + 1]
-        if s0 == s1:
-            continue
-        maps, shifts = _row_maps(poses6, s0, s1, q, focal, cx, cy)
         for j in range(width):
-            if not needed(i, j):
-                continue
-            val = _render_pixel(ref, maps, shifts, weights, s0, j + dx, i + dy, cx, cy)
-            if math.isnan(val):
+            if render_mask[i, j] != 0 and (stride < 0 or (lo[i, j] - stride < k < hi[i, j] + stride)):
+                want[i, j] = 1
                 rendered[i, j] = np.nan
-                err[i, j] = tau
-            else:
-                val *= gain[j] if per_column else 1.0
-                rendered[i, j] = val
-                e = abs(g[i, j] - np.float32(val))
-                err[i, j] = tau if e > tau else e  # NaN (no capture data) stays NaN
+    _render_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, q, want, rendered)
     for i in range(height):
         for j in range(width):
-            if needed(i, j):
+            if want[i, j] != 0:
+                if math.isnan(rendered[i, j]):
+                    err[i, j] = tau
+                else:
+                    e = abs(g[i, j] - rendered[i, j])
+                    err[i, j] = tau if e > tau else e  # NaN (no capture data) stays NaN
+    for i in range(height):
+        for j in range(width):
+            if want[i, j] != 0:
                 acc = 0.0
                 for d in range(-half, half + 1):
                     acc += err[i, min(max(j + d, 0), width - 1)]
@@ -371,7 +365,7 @@ def _one_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, q, k,
                 continue
             if stride > 0 and not (index[i, j] >= 0 and abs(k - index[i, j]) < stride):
                 continue
-            if not needed(i, j):  # rendered at an earlier depth only
+            if want[i, j] == 0:  # rendered at an earlier depth only
                 continue
             acc = 0.0
             for d in range(-half, half + 1):
