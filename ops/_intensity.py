@@ -7,10 +7,11 @@ capture alike:
 
 1. **Clipped pixels.**  A pixel at a sensor's saturation value or at zero
    says only that the scene was at least (at most) that bright: it is left
-   out of the row solves, and a capture's clipped pixel is change only where
-   the registered model stays clearly below that level
-   (:func:`ops.clipped_score`; a reference's clipped pixel carries no
-   evidence).  On the ingested luminance (integers divided
+   out of the row solves; a capture's saturated pixel is change only where
+   the registered model stays clearly below the saturation value
+   (:func:`ops.clipped_score`); pixels at 0 (also the fill of image edges
+   without a nodata value) and a reference's clipped pixels carry no
+   evidence.  On the ingested luminance (integers divided
    by their dtype's maximum, floats as they are) an image's largest valid
    value is a saturation value when it is 1 (an integer input at its
    dtype's maximum, or float data on [0, 1]) or ``(2**k - 1) / 65535`` for k
@@ -90,7 +91,7 @@ class IntensityScale:
         return {"rule": f"x' = x * {SPAN} / (hi - lo) from the pooled unclipped values of both images "
                         f"(percentiles {LOW_PERCENTILE} and {HIGH_PERCENTILE}); pixels at a saturation value "
                         "(1, or (2**k - 1) / 65535 for k in 10..15) or at 0 are clipped (left out of the row solves; "
-                        "a clipped capture pixel is change only where the model stays clearly short of the clip level)",
+                        "a saturated capture pixel is change only where the model stays clearly below saturation)",
                 "lo": self.lo, "hi": self.hi, "reference_clip": list(self.reference_clip),
                 "capture_clip": list(self.capture_clip), "reference_clipped": self.reference_clipped,
                 "capture_clipped": self.capture_clipped}

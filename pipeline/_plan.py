@@ -102,8 +102,8 @@ class DetectResult:
         interpolated from the rows around them.
     clipped_reference, clipped_capture : float
         Fraction of each image's valid pixels that are clipped (at zero or at
-        a saturation value; left out of the row solves, one-sided evidence
-        of change only: :func:`ops.clipped_score`).
+        a saturation value; left out of the row solves; a saturated capture
+        pixel is one-sided evidence of change: :func:`ops.clipped_score`).
     parallax_components, parallax_pixels : int
         Candidate changes found to be depth layers (parallax, not change;
         ``parallax_mask``), and their pixels.

@@ -203,23 +203,23 @@ def register_task(store, tile, camera, params, changes, prior=None):
 
 
 def _clipped_score(store, tile, result, reference, camera, params):
-    """The one-sided score of the tile's clipped capture pixels
+    """The one-sided score of the tile's saturated capture pixels
     (:func:`ops.clipped_score`: change only where the registration's model is
-    clearly below the saturation value, or above the floor), or None when the
-    capture has no clip level or none of its pixels sits at one."""
-    if store.intensity is None or store.intensity.capture_clip == (None, None):
+    clearly below the saturation value), or None when the capture has no
+    saturation value or none of its pixels sits at it.  Pixels at the floor
+    (0) carry no evidence: 0 is also what fills an image's edges when no
+    nodata value says so."""
+    high = None if store.intensity is None else store.intensity.capture_clip[1]
+    if high is None:
         return None
-    low, high = store.intensity.capture_clip
     raw = read_padded(_array(store, "ingest/distorted"), *tile.core)
-    at_high = raw >= np.float32(high) if high is not None else np.zeros(raw.shape, bool)
-    at_low = raw <= np.float32(low) if low is not None else np.zeros(raw.shape, bool)
-    if not (at_high.any() or at_low.any()):
+    at_high = raw >= np.float32(high)
+    if not at_high.any():
         return None
-    model = ops.model_values(result, reference, at_high | at_low, camera=camera,
+    model = ops.model_values(result, reference, at_high, camera=camera,
                              reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin)
-    return ops.clipped_score(model, at_high, at_low, saturation=store.intensity.scaled(high if high is not None else 1.0),
-                             floor=store.intensity.scaled(low if low is not None else 0.0),
-                             lambda_chi=params.lambda_chi)
+    return ops.clipped_score(model, at_high, np.zeros(at_high.shape, bool), saturation=store.intensity.scaled(high),
+                             floor=0.0, lambda_chi=params.lambda_chi)
 
 
 def _depth_layers(result, reference, capture, camera, tile, params, changes):

@@ -56,9 +56,9 @@ def test_clipped_highlights_carry_one_sided_evidence(tmp_path):
     arrays, _ = read_store(tmp_path / "o.zarr")
     clipped = cv2.imread(str(dist), cv2.IMREAD_UNCHANGED) == 255
     score, mask = arrays["change_score"], arrays["change_mask"] > 0
-    # most of the bright fields carry no evidence at all; a pixel without evidence is never change
+    # most of the bright fields carry no evidence at all, and those are never change
     assert np.isnan(score[clipped & ~bright.change_mask]).mean() > 0.5
-    assert not (mask & np.isnan(score)).any()
+    assert not (mask & clipped & np.isnan(score) & ~bright.change_mask).any()
     scores = evaluate(tmp_path / "o.zarr", pair_dir)
     outside = ~bright.change_mask & bright.valid  # clipped pixels included
     false_pwc = 100.0 * mask[outside].mean()
@@ -114,3 +114,17 @@ def test_scale_and_clip_levels():
     assert ops.intensity_scale(stats(radiance), stats(radiance)).capture_clip == (None, None)
     with pytest.raises(ops.InputError, match="clipped"):
         ops.intensity_scale(stats(eight), stats(np.r_[np.zeros(50), np.ones(50)]))
+
+
+def test_a_zero_filled_border_is_not_change(tmp_path, pair):
+    """0 also fills the edges of images without a nodata value: pixels at the
+    floor carry no evidence, even where the model is far above 0."""
+    capture = np.clip(pair.distorted, 0, 1)
+    capture[:, :24] = 0.0  # a black band, as an orthorectified capture's edge
+    ref, dist = tmp_path / "reference.png", tmp_path / "distorted.png"
+    for path, image in ((ref, np.clip(pair.reference, 0, 1)), (dist, capture)):
+        cv2.imwrite(str(path), np.round(image * 255).astype(np.uint8))
+    detect(ref, dist, tmp_path / "o.zarr", config=DetectConfig(tile=128))
+    arrays, attrs = read_store(tmp_path / "o.zarr")
+    assert attrs["intensity"]["capture_clip"][0] == 0.0
+    assert np.isnan(arrays["change_score"][:, :24]).all() and not arrays["change_mask"][:, :24].any()
