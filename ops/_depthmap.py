@@ -10,7 +10,8 @@ translations ``tx``, ``ty`` and the scale ``s`` of every weighted pose
 multiplied by ``q``, rotations as they are; ``q = 1`` is the registered plane,
 ``q = 0`` infinitely far), the per-pixel residual, truncated at the change
 threshold, is averaged over a window, and each pixel takes the depth of the
-lowest window cost:
+lowest window cost among those it tries (every 4th depth, then the depths
+around its best one: :attr:`DepthMapParams.stride`):
 
 - only where that cost is clearly lower than the registered plane's (at most
   :attr:`DepthMapParams.gain` times it): ties and noise keep the plane;
@@ -236,57 +237,51 @@ class _RowPoses:
 
     def render(self, ref, geometry, q, mask):
         out = np.full(mask.shape, np.nan, np.float32)
-        _render_depth(ref, self.poses6, self.weights, self.offsets, self.gain, *geometry, q,
+        maps = _pose_maps(self.poses6, *geometry[:3])
+        _render_depth(ref, maps, self.poses6, self.weights, self.offsets, self.gain, *geometry[1:], q,
                       mask.astype(np.uint8), out)
         return out
 
 
 @numba.njit(nogil=True, cache=True)
-def _row_maps(poses6, s0, s1, q, focal, cx, cy):
-    """The inverse maps of poses ``s0:s1`` at inverse depth ``q`` (translations
-    and scale times ``q``): rotation maps and (tx, ty, scale) per pose."""
-    count = s1 - s0
-    maps = np.empty((count, 9))
-    shifts = np.empty((count, 3))
-    for k in range(count):
-        p = poses6[s0 + k].copy()
-        p[0] *= q
-        p[1] *= q
-        p[2] *= q
-        m, tx, ty, sc = _inverse_map(p, focal, cx, cy)
-        maps[k] = m
-        shifts[k, 0], shifts[k, 1], shifts[k, 2] = tx, ty, sc
-    return maps, shifts
+def _pose_maps(poses6, focal, cx, cy):
+    """The rotation part of every pose's inverse map (:func:`_inverse_map`),
+    (N, 9): it does not depend on the depth, which scales only the
+    translations and the scale."""
+    maps = np.empty((poses6.shape[0], 9))
+    for k in range(poses6.shape[0]):
+        maps[k] = _inverse_map(poses6[k], focal, cx, cy)[0]
+    return maps
 
 
 @numba.njit(nogil=True, cache=True)
-def _render_pixel(ref, maps, shifts, weights, s0, x, y, cx, cy):
-    """One pixel of a row: the weighted sum of its poses' samples (no gain);
-    NaN where a pose leaves valid reference data."""
+def _render_pixel(ref, maps, poses6, weights, s0, s1, q, x, y, cx, cy):
+    """One pixel of a row: the weighted sum of the samples of its poses
+    ``s0:s1`` at inverse depth ``q`` (translations and scale times ``q``; no
+    gain); NaN where a pose leaves valid reference data."""
     acc = 0.0
-    for k in range(maps.shape[0]):
-        val = _sample(ref, maps[k], shifts[k, 0], shifts[k, 1], shifts[k, 2], x, y, cx, cy)
+    for k in range(s0, s1):
+        val = _sample(ref, maps[k], poses6[k, 0] * q, poses6[k, 1] * q, 1.0 + poses6[k, 2] * q, x, y, cx, cy)
         if math.isnan(val):
             return np.nan
-        acc += weights[s0 + k] * val
+        acc += weights[k] * val
     return acc
 
 
 @numba.njit(nogil=True, cache=True)
-def _render_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, q, mask, out):
+def _render_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, q, mask, out):
     """``out[i, j]`` = row ``i``'s weighted poses at inverse depth ``q``
-    (translations and scale times ``q``) applied to ``ref``, times the column
-    gain, where ``mask``; NaN where a pose leaves valid reference data."""
+    (``maps``: :func:`_pose_maps`) applied to ``ref``, times the column gain,
+    where ``mask``; NaN where a pose leaves valid reference data."""
     height, width = out.shape
     per_column = gain.shape[0] == width
     for i in range(height):
         s0, s1 = offsets[i], offsets[i + 1]
         if s0 == s1:
             continue
-        maps, shifts = _row_maps(poses6, s0, s1, q, focal, cx, cy)
         for j in range(width):
             if mask[i, j] != 0:
-                val = _render_pixel(ref, maps, shifts, weights, s0, j + dx, i + dy, cx, cy)
+                val = _render_pixel(ref, maps, poses6, weights, s0, s1, q, j + dx, i + dy, cx, cy)
                 if not math.isnan(val):
                     out[i, j] = val * (gain[j] if per_column else 1.0)
 
@@ -297,8 +292,9 @@ def _sweep(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, qs, rende
     """The depths of ``qs`` (ascending), coarse to fine: every ``stride``-th
     depth (and the last) at every ``active`` pixel, then each active pixel
     the depths within ``stride`` steps of its best coarse one.  A depth is
-    rendered where ``render_mask`` (as :func:`_render_depth`) and where an
-    active pixel evaluated at it needs it in its window; its residual,
+    rendered where ``render_mask`` (as :func:`_render_depth`) and, in the fine
+    pass, where the best coarse depths of the active pixels in the window
+    span a range within ``stride`` steps of it; its residual,
     truncated at ``tau`` (``tau`` where not rendered), is averaged over the
     ``window`` square (borders replicated, as :func:`_window_cost`), and an
     active pixel takes the depth (``best`` cost, ``chosen`` value, ``depth``)
@@ -311,23 +307,24 @@ def _sweep(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, qs, rende
     rendered = np.full((height, width), np.nan, np.float32)
     across = np.zeros((height, width), np.float64)
     index = np.full((height, width), -1, np.int64)  # best coarse depth per active pixel
-    every = np.ones((height, width), np.int64)
+    want = np.zeros((height, width), np.uint8)
+    maps = _pose_maps(poses6, focal, cx, cy)
     for k in range(count):
-        if k % stride == 0 or k == count - 1:
-            _one_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, qs[k], k, render_mask, active,
-                       every, every, g, tau, half, -1, count, err, rendered, across, best, chosen, depth, index)
+        if k % stride == 0 or k == count - 1:  # lo, hi unused in the coarse pass
+            _one_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, qs[k], k, render_mask, active,
+                       index, index, g, tau, half, -1, want, err, rendered, across, best, chosen, depth, index)
     if stride <= 1:
         return
     lo, hi = _window_range(index, active, half)
     for k in range(count):
         if not (k % stride == 0 or k == count - 1):
-            _one_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, qs[k], k, render_mask, active,
-                       lo, hi, g, tau, half, stride, count, err, rendered, across, best, chosen, depth, index)
+            _one_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, qs[k], k, render_mask, active,
+                       lo, hi, g, tau, half, stride, want, err, rendered, across, best, chosen, depth, index)
 
 
 @numba.njit(nogil=True, cache=True)
-def _one_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, q, k, render_mask, active, lo, hi, g,
-               tau, half, stride, count, err, rendered, across, best, chosen, depth, index):
+def _one_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, q, k, render_mask, active, lo, hi, g,
+               tau, half, stride, want, err, rendered, across, best, chosen, depth, index):
     """Depth ``k`` (inverse depth ``q``) of :func:`_sweep`.  ``stride`` -1: the
     coarse pass (every pixel of ``render_mask``; ``index`` records each active
     pixel's best coarse depth); else only pixels whose window holds an active
@@ -337,13 +334,12 @@ def _one_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, q, k,
     height, width = err.shape
     area = float((2 * half + 1) * (2 * half + 1))
 
-    want = np.zeros((height, width), np.uint8)
     for i in range(height):
         for j in range(width):
-            if render_mask[i, j] != 0 and (stride < 0 or (lo[i, j] - stride < k < hi[i, j] + stride)):
-                want[i, j] = 1
+            want[i, j] = render_mask[i, j] != 0 and (stride < 0 or (lo[i, j] - stride < k < hi[i, j] + stride))
+            if want[i, j]:
                 rendered[i, j] = np.nan
-    _render_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, q, want, rendered)
+    _render_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, q, want, rendered)
     for i in range(height):
         for j in range(width):
             if want[i, j] != 0:
@@ -364,8 +360,6 @@ def _one_depth(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, q, k,
             if active[i, j] == 0 or math.isnan(rendered[i, j]):
                 continue
             if stride > 0 and not (index[i, j] >= 0 and abs(k - index[i, j]) < stride):
-                continue
-            if want[i, j] == 0:  # rendered at an earlier depth only
                 continue
             acc = 0.0
             for d in range(-half, half + 1):
