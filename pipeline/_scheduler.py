@@ -69,7 +69,7 @@ def _openblas_libraries():
 
 def _openblas_functions(path):
     try:
-        lib = ctypes.CDLL(path, mode=getattr(os, "RTLD_NOLOAD", 0) | ctypes.RTLD_GLOBAL)
+        lib = ctypes.CDLL(path, mode=getattr(os, "RTLD_NOLOAD", 0))  # local: nothing else binds to it
     except OSError:
         return None
     for get, set_ in _OPENBLAS_SYMBOLS:
