@@ -102,12 +102,19 @@ class RunStore:
         """Window ``rows``, ``cols`` of the capture grid of the ingested image
         ``name`` ("reference" or "capture") on the common scale, NaN where
         clipped, no-data or beyond the array."""
+        return self.on_scale(self.ingested(name, rows, cols), name)
+
+    def ingested(self, name, rows, cols):
+        """The same window as ingested: before the common scale (its clip
+        levels apply here), NaN where no-data or beyond the array."""
         if name == "reference":
             m = self.reference_offset
-            values = read_padded(_array(self, "ingest/reference"), slice(rows.start + m, rows.stop + m),
-                                 slice(cols.start + m, cols.stop + m))
-        else:
-            values = read_padded(_array(self, "ingest/distorted"), rows, cols)
+            return read_padded(_array(self, "ingest/reference"), slice(rows.start + m, rows.stop + m),
+                               slice(cols.start + m, cols.stop + m))
+        return read_padded(_array(self, "ingest/distorted"), rows, cols)
+
+    def on_scale(self, values, name):
+        """Ingested ``values`` of image ``name`` on the common scale, NaN where clipped."""
         return values if self.intensity is None else self.intensity.apply(values, name)
 
 
@@ -167,7 +174,8 @@ def register_task(store, tile, camera, params, changes, prior=None):
     ty, tx = tile.index
     h, w = tile.core_shape
     reference = store.read("reference", *tile.window)
-    distorted = store.read("capture", *tile.core)
+    raw = store.ingested("capture", *tile.core)
+    distorted = store.on_scale(raw, "capture")
     read = time.perf_counter() - start
     dist_valid = np.isfinite(distorted)
     capture = np.nan_to_num(distorted)  # NaN: no-data
@@ -181,10 +189,11 @@ def register_task(store, tile, camera, params, changes, prior=None):
                           distorted_valid=dist_valid)
     layers = _depth_layers(result, reference, capture, camera, tile, params, changes)
     score = ops.change_score(layers.chi, layers.registered, params=changes)
-    score = np.where(result.valid, np.where(layers.parallax, 0.0, score), np.nan)  # NaN: unknown
-    clipped = _clipped_score(store, tile, result, reference, camera, params)
+    score = np.where(result.valid, score, np.nan)  # NaN: unknown
+    clipped = _clipped_score(store, raw, tile, result, reference, camera, params)
     if clipped is not None:
         score = np.where(np.isfinite(clipped), clipped, score)
+    score = np.where(layers.parallax & np.isfinite(score), 0.0, score)  # parallax is never change, clipped or not
     residual = np.where(result.valid, distorted - layers.registered, 0.0)
     hist = ops.score_histogram(residual, score, result.valid)
     write_start = time.perf_counter()
@@ -202,17 +211,16 @@ def register_task(store, tile, camera, params, changes, prior=None):
             "kernel_s": write_start - start - read, "pixels": h * w, "gain": result.gain}
 
 
-def _clipped_score(store, tile, result, reference, camera, params):
+def _clipped_score(store, raw, tile, result, reference, camera, params):
     """The one-sided score of the tile's saturated capture pixels
     (:func:`ops.clipped_score`: change only where the registration's model is
     clearly below the saturation value), or None when the capture has no
     saturation value or none of its pixels sits at it.  Pixels at the floor
     (0) carry no evidence: 0 is also what fills an image's edges when no
-    nodata value says so."""
+    nodata value says so.  ``raw``: the tile's capture as ingested."""
     high = None if store.intensity is None else store.intensity.capture_clip[1]
     if high is None:
         return None
-    raw = read_padded(_array(store, "ingest/distorted"), *tile.core)
     at_high = raw >= np.float32(high)
     if not at_high.any():
         return None
