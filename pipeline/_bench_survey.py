@@ -85,6 +85,15 @@ def _rsmb(*args):
     return subprocess.run([sys.executable, "-m", "rsmb", *map(str, args)], capture_output=True, text=True)
 
 
+def _measured(*args, codes=(0,)):
+    """:func:`_rsmb` for a run the bench measures: any other exit code than
+    ``codes`` stops the bench with the command's own message."""
+    proc = _rsmb(*args)
+    if proc.returncode not in codes:
+        raise RuntimeError(f"rsmb {' '.join(map(str, args))} exited {proc.returncode}: {proc.stderr.strip()[-2000:]}")
+    return proc
+
+
 def _user_cut(references, capture, target, resampling=USER_DEFAULT):
     """What a user cuts by hand from ``references`` for ``capture``: each file
     reprojected onto the capture's grid with rasterio (``rio warp --like
@@ -214,15 +223,15 @@ def bench_night(data, workdir, *, captures=8, side=1024, detect_side=4096):
     megapixels = captures * side * side / 1e6
     cmd = ["survey", *references, "--captures", work / "incoming" / "*.tif", "-o", work / "out", "--json"]
     start = time.perf_counter()
-    first = _rsmb("-q", *cmd)
+    first = _measured("-q", *cmd, codes=(0, 3))  # 3: some captures failed (counted below)
     night_s = time.perf_counter() - start
     summary = json.loads(first.stdout)
     start = time.perf_counter()
-    again = json.loads(_rsmb("-q", *cmd).stdout)
+    again = json.loads(_measured("-q", *cmd, codes=(0, 3)).stdout)
     rerun_s = time.perf_counter() - start
     ref, dist = large.reference, large.distorted
     start = time.perf_counter()
-    single = _rsmb("-q", "detect", ref, dist, "-o", work / "large.zarr")
+    single = _measured("-q", "detect", ref, dist, "-o", work / "large.zarr")
     detect_s = time.perf_counter() - start
     scores = [evaluate(c["output"] + "/changes.zarr", Path(c["capture"]).with_suffix(".truth")).changes.f_measure
               for c in summary["captures"] if c["status"] == "done"]
@@ -230,7 +239,7 @@ def bench_night(data, workdir, *, captures=8, side=1024, detect_side=4096):
            "night_megapixels_per_s": megapixels / night_s, "done": summary["done"], "failed": summary["failed"],
            "rerun_s": rerun_s, "rerun_skipped": again["skipped"], "detect_side": detect_side, "detect_s": detect_s,
            "detect_megapixels_per_s": detect_side ** 2 / 1e6 / detect_s, "detect_exit": single.returncode,
-           "f_measure_min": min(scores) if scores else None,
+           "f_measure_min": min(scores) if scores else float("nan"),
            "detect_f_measure": evaluate(work / "large.zarr", work / "large" / "capture.truth").changes.f_measure}
     out["ratio"] = out["night_megapixels_per_s"] / out["detect_megapixels_per_s"]
     _echo(f"survey night ({source}): {captures} captures of {side} x {side} in {night_s:.1f} s end to end "
