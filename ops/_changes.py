@@ -45,6 +45,7 @@ from ._oracle import optimal_chi
 from ._threshold import kapur_threshold_histogram
 
 __all__ = ["ChangeParams", "ScoreHistogram", "score_histogram", "change_threshold", "residual_median", "change_score",
+           "clipped_score",
            "RESIDUAL_BINS", "SCORE_BINS", "change_candidates",
            "label_components", "keep_components", "fill_holes", "change_mask", "changes_to_reference",
            "ChangeResult", "detect_changes"]

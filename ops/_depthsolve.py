@@ -11,7 +11,7 @@ scale times that pixel's relative inverse depth ``q_j``, rotations as they
 are), and the depth step is run again with the new weights.
 
 Rule: a round is kept only when eq. 13's total objective of the final model
-(the truncated quadratic of ``g`` minus the re-rendered reference plus
+(the Huber loss of ``g`` minus the re-rendered reference plus
 ``lambda_w`` times the weights' sum, over the pixels both models cover)
 decreases; the first round that does not is dropped and the rounds stop.
 Pixels of components found to be depth layers are left out of the re-solve
@@ -35,6 +35,7 @@ from ._camera import full_poses
 from ._depthmap import _geometry, _sample, depth_map
 from ._layers import depth_layers
 from ._oracle import _huber_loss, optimal_chi
+from ._rowproblem import _centroid, _Solver
 from ._rowsolve import _solve_huber_nn
 from ._warp import _inverse_map
 
@@ -172,7 +173,7 @@ def _resolve_rows(registration, reference, g, inverse_depth, exclude, rows, came
         a = np.zeros((len(grid), g.shape[1]), np.float32)
         ok = _build_row_depth(ref, poses6, inverse_depth[i].astype(np.float64), focal, cx, cy, i + dy, dx, a)
         use = (ok == 1) & registration.valid[i] & ~exclude[i]
-        if use.sum() < max(16, 0.1 * use.size):
+        if use.sum() < _Solver.min_valid(use.size):
             continue
         a[:, ~use] = 0.0
         g_row = np.where(use, g[i] / gain, 0.0).astype(np.float64)
@@ -197,7 +198,7 @@ def _grid(space, poses, w):
     """The row neighbourhood around the row's centroid, widened to cover its
     weighted poses: lattice indices and poses."""
     step = np.asarray(space.step)
-    centre = space.snap((w @ poses) / w.sum())
+    centre = space.snap(_centroid(poses, w))
     reach = np.abs(np.rint(poses / step).astype(np.int64) - centre).max(axis=0)
     half = np.maximum(np.rint(np.asarray(space.half_width) / step), reach) * step
     return space.widened(tuple(half)).grid(centre * step)

@@ -16,7 +16,6 @@ import time
 import numpy as np
 
 from rsmb import ops
-from rsmb import tiles
 
 from . import _tasks
 

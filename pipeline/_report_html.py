@@ -9,12 +9,12 @@ shown as an image may not load another file.
 """
 
 import datetime
-import html
 import json
 
 import numpy as np
 
 from ._report_figures import FIGURES
+from ._report_svg import esc as _esc
 
 _STATES = {1: "solved", 2: "homogeneous", 3: "failed"}
 
@@ -53,10 +53,6 @@ _SUMMARY_LABELS = {
     "clipped_reference": "clipped fraction of the reference (no evidence)",
     "clipped_capture": "clipped fraction of the capture (one-sided evidence only)",
 }
-
-
-def _esc(value):
-    return html.escape(str(value), quote=True)
 
 
 def _fmt(value):

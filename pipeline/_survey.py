@@ -16,7 +16,6 @@ retried, a changed one redone.  One bad capture never stops the night: it is
 ``failed`` with a one-line reason and the others finish.
 """
 
-import contextlib
 import dataclasses
 import datetime as _dt
 import glob
@@ -349,7 +348,7 @@ def _fail(ledger, run_id, capture, exc, seconds):
     return CaptureResult(str(capture), "failed", reason, seconds=seconds or 0.0)
 
 
-def _run_capture(capture, name, out, references, config, runner, report, slots=None):
+def _run_capture(capture, name, out, references, config, runner, report, slots):
     """One capture, built aside and renamed into place: its store, products,
     thumbnail and report.  Runs in a driver thread; its tasks on ``runner``;
     its detection holds one of ``slots`` (a semaphore), its products and
@@ -371,12 +370,12 @@ def _run_capture(capture, name, out, references, config, runner, report, slots=N
                          len(features), float(sum(f.area_m2 for f in features)), time.perf_counter() - start)
 
 
-def _build(capture, aside, folder, references, config, runner, report, slots=None):
+def _build(capture, aside, folder, references, config, runner, report, slots):
     """The capture's products in ``aside`` (to become ``folder``): returns its
     change polygons and the reference files read.  The detection holds one of
-    ``slots`` (a semaphore, if given)."""
+    ``slots`` (a semaphore)."""
     store = aside / "changes.zarr"
-    with slots if slots is not None else contextlib.nullcontext():
+    with slots:
         summary = detect(references, capture, store, config=config, runner=runner)
     # the store records where it lives once the folder is in place
     tiles.update_attrs(store, {"summary": {**summary.as_dict(), "output": str(folder / "changes.zarr")}})
