@@ -4,9 +4,8 @@ the per-row solvers of eq. 13, registration, change masks and metrics.
 Pure numpy (with numba-compiled inner loops); no I/O, no dask, no zarr.
 """
 
-from ._baseline import EccResult, dis_flow, ecc_homography, orb_homography
 from ._camera import AXIS_UNITS, POSE_AXES, Camera, full_poses, pose_homographies
-from ._changes import (
+from .changes._changes import (
     RESIDUAL_BINS,
     SCORE_BINS,
     ChangeParams,
@@ -28,20 +27,20 @@ from ._changes import (
 from ._errors import InputError, ParameterError, RSMBError, RunError, SolverError
 from ._forward import CameraPath, RenderResult, render
 from ._intensity import IntensityScale, intensity_scale
-from ._depthmap import DepthMapParams, DepthMapResult, depth_map, model_values
-from ._depthsolve import AlternateParams, depth_step
-from ._layers import LayerParams, LayerResult, depth_layers
-from ._metrics import ConfusionCounts, confusion, trajectory_rmse
+from .depth._depthmap import DepthMapParams, DepthMapResult, depth_map, model_values
+from .depth._depthsolve import AlternateParams, depth_step
+from .depth._layers import LayerParams, LayerResult, depth_layers
+from .changes._metrics import ConfusionCounts, confusion, trajectory_rmse
 from ._oracle import ExactRowSolution, huber_objective, optimal_chi, row_objective, solve_row_exact
 from ._posespace import PoseSpace
-from ._params import RegistrationParams, auto_step
-from ._register import Registration, register
-from ._reground import reground
-from ._rowsolve import solve_row_fast
-from ._scene import aerial_scene, paste_changes
-from ._slow import SlowPath, estimate_slow
-from ._synth import MOTIONS, SyntheticPair, motion_path, synthesize_pair
-from ._threshold import kapur_threshold, kapur_threshold_histogram
+from .registration._params import RegistrationParams, auto_step
+from .registration._register import Registration, register
+from .registration._reground import reground
+from .registration._rowsolve import solve_row_fast
+from .synthetic._scene import aerial_scene, paste_changes
+from .registration._slow import SlowPath, estimate_slow
+from .synthetic._synth import MOTIONS, SyntheticPair, motion_path, synthesize_pair
+from .changes._threshold import kapur_threshold, kapur_threshold_histogram
 
 #: Version of the kernels' results: raised whenever a change to ops alters what
 #: a run computes, so that ``--resume`` never mixes tiles of two versions.
@@ -55,10 +54,6 @@ __all__ = [
     "full_poses",
     "pose_homographies",
     "PoseSpace",
-    "EccResult",
-    "ecc_homography",
-    "orb_homography",
-    "dis_flow",
     "CameraPath",
     "RenderResult",
     "render",

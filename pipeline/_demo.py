@@ -15,8 +15,8 @@ from rsmb import ops
 from rsmb import tiles
 from rsmb.ops import InputError
 
-from ._detect import detect
-from ._plan import DetectConfig
+from .detection._detect import detect
+from .detection._plan import DetectConfig
 from ._evaluate import evaluate
 from ._synth import write_pair
 
@@ -49,7 +49,7 @@ def run_demo(out_dir="rsmb-demo", *, size=2048, tile=None, changes=40, seed=0, s
     summary = detect(ref, dist, store, config=DetectConfig(tile=tile), scheduler=scheduler, workers=workers,
                      overwrite=True, geotiff=out / "geotiff")
     scores = evaluate(store, out / "pair")
-    from ._report import write_report
+    from .report._report import write_report
 
     report = write_report(store, out / "report", overwrite=True)
     (out / "scores.json").write_text(json.dumps(scores.as_dict(), indent=2))

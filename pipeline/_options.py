@@ -144,7 +144,7 @@ def registration_options(func):
 def build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold, min_area,
                  focal, tile=None, overlap=None, *, slow_axes="rx,ry", layers=True):
     """A :class:`pipeline.DetectConfig` from command-line values."""
-    from ._plan import DetectConfig
+    from .detection._plan import DetectConfig
 
     axes = tuple(a.strip() for a in axes.split(",") if a.strip())
     unknown = [a for a in axes if a not in ops.POSE_AXES]

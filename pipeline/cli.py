@@ -64,7 +64,7 @@ def detect(reference, distorted, output, axes, half_width, step, slow_axes, sear
            lambda_chi, threshold, min_area, no_layers, focal, tile_size, overlap, scheduler, workers, worker_timeout,
            resume, overwrite, geotiff, as_json):
     """Register DISTORTED against REFERENCE and write change masks to a zarr store."""
-    from ._detect import detect as run
+    from .detection._detect import detect as run
 
     config = build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold,
                           min_area, focal, tile_size, overlap, slow_axes=slow_axes, layers=not no_layers)
@@ -147,7 +147,7 @@ def evaluate(store, truth_dir, as_json):
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None, help="Also write results here.")
 def bench(sections, data, quick, sizes, workers, tile_size, json_path):
     """Measure accuracy against the cvxpy oracle, speed, memory and real captures."""
-    from ._bench import SECTIONS, run_bench
+    from .bench._bench import SECTIONS, run_bench
 
     chosen = tuple(x.strip() for x in sections.split(",") if x.strip())
     unknown = [x for x in chosen if x not in SECTIONS]
@@ -192,7 +192,7 @@ def demo(out_dir, size, tile_size, scheduler, overwrite):
 @click.option("--overwrite", is_flag=True, help="Write into an existing non-empty report directory.")
 def report(store, out_dir, max_pixels, overwrite):
     """An HTML page with figures of one detect STORE: change overlay, trajectory, gain, tile agreement, score."""
-    from ._report import write_report
+    from .report._report import write_report
 
     index = write_report(store, out_dir, max_pixels=max_pixels, overwrite=overwrite)
     click.echo(f"wrote {index}")
@@ -231,7 +231,7 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes
     Each capture gets a folder with its store, changes.gpkg, COGs, thumbnail
     and report; a capture done with the same inputs and parameters is skipped.
     Exit code 3 when some captures failed (the rest finished)."""
-    from ._survey import survey as run
+    from .archive._survey import survey as run
 
     config = build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold,
                           min_area, focal, tile_size, overlap, slow_axes=slow_axes, layers=not no_layers)
@@ -260,7 +260,7 @@ def run_command(ctx, workflow, scheduler, check):
 
     Exit code 3 when a step failed, a survey step included when some of its
     captures failed (the summary says which and why)."""
-    from ._workflow import check_inputs, load_workflow, run_workflow
+    from .workflow._workflow import check_inputs, load_workflow, run_workflow
 
     if check:
         flow = load_workflow(workflow)

@@ -19,16 +19,16 @@ __all__ = ["detect", "survey", "synth", "evaluate", "report", "SurveyResult", "D
 
 # public name -> (module, attribute)
 _API = {
-    "detect": ("rsmb.pipeline._detect", "detect"),
-    "DetectConfig": ("rsmb.pipeline._detect", "DetectConfig"),
-    "DetectResult": ("rsmb.pipeline._detect", "DetectResult"),
+    "detect": ("rsmb.pipeline.detection._detect", "detect"),
+    "DetectConfig": ("rsmb.pipeline.detection._detect", "DetectConfig"),
+    "DetectResult": ("rsmb.pipeline.detection._detect", "DetectResult"),
     "synth": ("rsmb.pipeline._synth", "synth"),
     "PairPaths": ("rsmb.pipeline._synth", "PairPaths"),
     "evaluate": ("rsmb.pipeline._evaluate", "evaluate"),
     "Evaluation": ("rsmb.pipeline._evaluate", "Evaluation"),
-    "report": ("rsmb.pipeline._report", "write_report"),
-    "survey": ("rsmb.pipeline._survey", "survey"),
-    "SurveyResult": ("rsmb.pipeline._survey", "SurveyResult"),
+    "report": ("rsmb.pipeline.report._report", "write_report"),
+    "survey": ("rsmb.pipeline.archive._survey", "survey"),
+    "SurveyResult": ("rsmb.pipeline.archive._survey", "SurveyResult"),
 }
 
 

@@ -47,7 +47,7 @@ def test_api_and_command_run_the_same_night(tmp_path):
     """``rsmb.survey`` with its defaults keys a capture as ``rsmb survey`` with
     its own: the second of the two skips what the first did."""
     from rsmb import ops
-    from rsmb.pipeline._archive import CaptureSpec, write_capture, write_reference
+    from rsmb.pipeline.bench._archive import CaptureSpec, write_capture, write_reference
 
     scene = (0.05 + 0.7 * ops.aerial_scene((192, 192), seed=3)).astype(np.float32)
     references = write_reference(tmp_path / "reference", scene)
@@ -65,11 +65,11 @@ class _Called(Exception):
 
 # rsmb name -> (a command line, the module and function its command calls)
 _COMMANDS = {
-    "detect": (["detect", "ref.tif", "dist.tif", "-o", "o.zarr"], "rsmb.pipeline._detect", "detect"),
-    "survey": (["survey", "ref.tif", "--captures", "*.tif", "-o", "night"], "rsmb.pipeline._survey", "survey"),
+    "detect": (["detect", "ref.tif", "dist.tif", "-o", "o.zarr"], "rsmb.pipeline.detection._detect", "detect"),
+    "survey": (["survey", "ref.tif", "--captures", "*.tif", "-o", "night"], "rsmb.pipeline.archive._survey", "survey"),
     "synth": (["synth", "pair"], "rsmb.pipeline._synth", "synth"),
     "evaluate": (["evaluate", "o.zarr", "pair"], "rsmb.pipeline._evaluate", "evaluate"),
-    "report": (["report", "o.zarr"], "rsmb.pipeline._report", "write_report"),
+    "report": (["report", "o.zarr"], "rsmb.pipeline.report._report", "write_report"),
 }
 
 

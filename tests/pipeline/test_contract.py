@@ -11,8 +11,8 @@ import sys
 
 import pytest
 
-from rsmb.pipeline import _detect
-from rsmb.pipeline import _survey
+from rsmb.pipeline.detection import _detect
+from rsmb.pipeline.archive import _survey
 from rsmb.pipeline.cli import main
 
 from .conftest import read_store
@@ -223,7 +223,7 @@ def survey_inputs(tmp_path_factory):
     import numpy as np
 
     from rsmb import ops
-    from rsmb.pipeline._archive import CaptureSpec, write_capture, write_reference
+    from rsmb.pipeline.bench._archive import CaptureSpec, write_capture, write_reference
 
     root = tmp_path_factory.mktemp("survey-inputs")
     scene = (0.05 + 0.7 * ops.aerial_scene((192, 192), seed=3)).astype(np.float32)

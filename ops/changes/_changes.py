@@ -1,0 +1,485 @@
+"""From the change term to change masks in both grids (METHOD.md section 3, steps 4-5).
+
+The score of a pixel starts from ``|chi|``: the part of its residual that the warped and
+blurred reference cannot explain beyond the Huber knee ``lambda_chi / 2``.
+
+Thresholds are computed from histograms that tiles can add up, so that a
+mosaic gets one threshold for the whole image:
+
+- ``"noise"`` (default): ``k`` robust standard deviations of the registration
+  residual (``1.4826 * median |g - F w|``), never below ``floor``.  It adapts to
+  how well the capture could be registered and does not depend on what changed.
+- ``"kapur"``: Kapur's maximum-entropy threshold of the histogram of the non-zero
+  scores, as in the paper, never below ``floor``.  On captures whose changes have
+  very different contrasts it tends to split the changes themselves.
+- a number: a fixed score threshold.
+
+The score is ``|chi|`` less an *interpolation allowance*: the row solver
+renders sub-pixel poses by linear interpolation (bilinear pre-warps, weights
+shared between whole-pixel shifts), whose error is bounded by ``1/8`` of the
+image's second difference along each axis (``h^2 |f''| / 8`` at a half-pixel
+offset).  A real capture's optics interpolate differently, so at the sharp
+edges and thin lines of a real photograph the residual of a perfect
+registration reaches that bound; ``interpolation * (|f_xx| + |f_yy|)`` of the
+registered image is taken off ``|chi|`` (:func:`change_score`).  A new object
+has its contrast on its own pixels, where the reference is mostly smooth: it
+keeps its score.  (A misregistration leaves a residual that follows the first
+derivative, not the second: it is not hidden.)
+
+Pixels above ``hysteresis`` times the threshold that touch a pixel above it are
+kept too (this recovers the blurred borders of changed objects), then connected
+components smaller than ``min_area`` pixels are removed.
+"""
+
+import numbers
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+from scipy import ndimage
+
+from .._camera import pose_homographies
+from .._errors import ParameterError
+from .._oracle import optimal_chi
+from ._threshold import kapur_threshold_histogram
+
+__all__ = ["ChangeParams", "ScoreHistogram", "score_histogram", "change_threshold", "residual_median", "change_score",
+           "clipped_score",
+           "RESIDUAL_BINS", "SCORE_BINS", "change_candidates",
+           "label_components", "keep_components", "fill_holes", "change_mask", "changes_to_reference",
+           "ChangeResult", "detect_changes"]
+
+THRESHOLD_METHODS = ("noise", "kapur")
+_RESIDUAL_EDGES = np.concatenate([[0.0], np.geomspace(1e-6, 4.0, 1024)])
+_SCORE_EDGES = np.linspace(0.0, 2.0, 513)
+#: Bins of :class:`ScoreHistogram`'s two histograms.
+RESIDUAL_BINS, SCORE_BINS = len(_RESIDUAL_EDGES) - 1, len(_SCORE_EDGES) - 1
+
+
+@dataclass(frozen=True)
+class ChangeParams:
+    """Tuning of change masks.
+
+    Attributes
+    ----------
+    threshold : {"noise", "kapur"} or float
+        How the score threshold is chosen (see the module docstring).
+    k : float
+        Robust standard deviations of the residual for ``"noise"``.
+    floor : float
+        Smallest automatic threshold, intensities in [0, 1].
+    min_area : int
+        Smallest connected change kept, in pixels.
+    hysteresis : float
+        Pixels above ``hysteresis * threshold`` connected to a changed pixel are
+        changed too; 1 disables it.
+    half_max_window : int
+        A changed pixel must also score at least ``half_max`` times the largest
+        score within this window (px): motion blur mixes a changed object with
+        its surroundings linearly, so about half its contrast marks where it
+        covers half a pixel, which is where the truth of a blurred change is
+        drawn.  Should exceed twice the blur length; 1 disables it.
+    half_max : float
+        That fraction; a little under one half because the score is the
+        residual less the Huber knee and object interiors are textured
+        (calibrated on synthetic pairs, see the benchmark).
+    layers : bool
+        Test candidate changes against depth layers (:func:`ops.depth_layers`):
+        one that registers at some relative depth is parallax, not change.
+    interpolation : float
+        The interpolation allowance of :func:`change_score`: this times the
+        registered image's absolute second differences along rows and
+        columns, summed.  ``1/8`` is the bound of linear interpolation's error
+        at a half-pixel offset; 0 disables it.
+    """
+
+    threshold: object = "noise"
+    k: float = 6.0
+    floor: float = 0.05
+    min_area: int = 20
+    hysteresis: float = 0.5
+    half_max_window: int = 15
+    half_max: float = 0.42
+    layers: bool = True
+    interpolation: float = 0.125
+
+    def __post_init__(self):
+        t = self.threshold
+        if isinstance(t, str):
+            if t not in THRESHOLD_METHODS:
+                try:
+                    t = float(t)
+                except ValueError:
+                    raise ParameterError(f"threshold: expected one of {THRESHOLD_METHODS} or a number, got {t!r}") from None
+        elif not isinstance(t, numbers.Real) or isinstance(t, bool):
+            raise ParameterError(f"threshold: expected one of {THRESHOLD_METHODS} or a number, got {t!r}")
+        if not isinstance(t, str) and not t > 0:
+            raise ParameterError(f"threshold: expected a positive number, got {t!r}")
+        object.__setattr__(self, "threshold", t if isinstance(t, str) else float(t))
+        if not 0 < self.hysteresis <= 1:
+            raise ParameterError(f"hysteresis: expected a fraction in (0, 1], got {self.hysteresis}")
+        if self.min_area < 0:
+            raise ParameterError(f"min_area: expected >= 0 pixels, got {self.min_area}")
+        if not self.interpolation >= 0:
+            raise ParameterError(f"interpolation: expected a fraction >= 0, got {self.interpolation!r}")
+
+    @property
+    def margin(self):
+        """Pixels around a window that :func:`change_candidates` reads to decide
+        the window's own pixels (half the half-maximum window, and one more)."""
+        return self.half_max_window // 2 + 1
+
+
+@dataclass(frozen=True)
+class ScoreHistogram:
+    """Histograms of ``|residual|`` and of non-zero scores; tiles add them up.
+
+    Attributes
+    ----------
+    residual : ndarray of int64, shape (RESIDUAL_BINS,)
+        Counts of ``|g - F w|`` on log-spaced bins from 1e-6 to 4.
+    score : ndarray of int64, shape (512,)
+        Counts of non-zero ``|chi|`` on linear bins from 0 to 2.
+    """
+
+    residual: np.ndarray
+    score: np.ndarray
+
+    def __add__(self, other):
+        return ScoreHistogram(self.residual + other.residual, self.score + other.score)
+
+
+def score_histogram(residual, score, valid):
+    """Histograms of one window (tile) for :func:`change_threshold`.
+
+    Parameters
+    ----------
+    residual, score : ndarray, shape (H, W)
+        ``g - F w`` and ``|chi|``.
+    valid : ndarray of bool, shape (H, W)
+    """
+    residual_counts = np.zeros(RESIDUAL_BINS, np.int64)
+    score_counts = np.zeros(SCORE_BINS, np.int64)
+    _histograms(np.asarray(residual), np.asarray(score), np.asarray(valid, bool), _RESIDUAL_EDGES, _SCORE_EDGES,
+                residual_counts, score_counts)
+    return ScoreHistogram(residual_counts, score_counts)
+
+
+@numba.njit(nogil=True, cache=True)
+def _histograms(residual, score, valid, residual_edges, score_edges, residual_counts, score_counts):
+    """:func:`score_histogram`'s counts in one pass, as ``np.histogram`` counts
+    them: ``|residual|`` clipped to the last residual edge, the score's positive
+    values clipped to the last score edge; bins closed on the left, the last
+    one on both sides; NaN is not counted."""
+    height, width = valid.shape
+    r_last, s_last = residual_edges[-1], score_edges[-1]
+    for i in range(height):
+        for j in range(width):
+            if not valid[i, j]:
+                continue
+            r = abs(np.float64(residual[i, j]))
+            if r == r:
+                k = np.searchsorted(residual_edges, min(r, r_last), side="right") - 1
+                residual_counts[min(k, residual_counts.shape[0] - 1)] += 1
+            c = np.float64(score[i, j])
+            if c > 0:
+                c = min(c, s_last)
+                k = np.searchsorted(score_edges, c, side="right") - 1
+                score_counts[min(k, score_counts.shape[0] - 1)] += 1
+
+
+def change_threshold(histogram, *, params=ChangeParams()):
+    """Score threshold of :class:`ChangeParams` from (summed) histograms.
+
+    Returns
+    -------
+    float
+        In score units (intensities in [0, 1]).
+    """
+    if not isinstance(params.threshold, str):
+        return float(params.threshold)
+    if params.threshold == "kapur":
+        t = kapur_threshold_histogram(histogram.score, _SCORE_EDGES)
+        return float(max(t if np.isfinite(t) else params.floor, params.floor))
+    if histogram.residual.sum() == 0:
+        return float(params.floor)
+    return float(max(params.k * 1.4826 * float(residual_median(histogram.residual)), params.floor))
+
+
+def residual_median(counts):
+    """Median ``|residual|`` of residual histograms (the upper edge of the median
+    bin, about 1 % resolution).
+
+    Parameters
+    ----------
+    counts : ndarray, shape (..., RESIDUAL_BINS)
+        ``ScoreHistogram.residual`` counts, one histogram or a stack (e.g. per tile).
+
+    Returns
+    -------
+    ndarray, shape (...)
+    """
+    cum = np.cumsum(counts, axis=-1)
+    index = (cum < 0.5 * cum[..., -1:]).sum(axis=-1)
+    return _RESIDUAL_EDGES[np.minimum(index + 1, len(_RESIDUAL_EDGES) - 1)]
+
+
+def change_score(chi, registered, *, params=ChangeParams()):
+    """The change score: ``|chi|`` less the interpolation allowance
+    ``params.interpolation * (|f_xx| + |f_yy|)`` of the registered image ``f``
+    (second differences; see the module docstring), never below 0.
+
+    Parameters
+    ----------
+    chi : ndarray, shape (H, W)
+        The change term of eq. 13.
+    registered : ndarray, shape (H, W)
+        The registered image ``F w`` (NaN where unknown), same units as ``chi``.
+
+    Returns
+    -------
+    ndarray of float32, shape (H, W)
+        Local (3-pixel second differences, borders replicated): a window
+        (tile) gives the score of the whole image except on its outermost
+        pixels.
+    """
+    score = np.abs(np.asarray(chi, dtype=np.float32))
+    if params.interpolation <= 0:
+        return score
+    image = np.nan_to_num(np.asarray(registered, dtype=np.float32))
+    allowance = np.zeros_like(image)
+    for kernel in (_SECOND_DIFFERENCE, _SECOND_DIFFERENCE.T):
+        allowance += np.abs(cv2.filter2D(image, cv2.CV_32F, kernel, borderType=cv2.BORDER_REPLICATE))
+    return np.maximum(score - np.float32(params.interpolation) * allowance, np.float32(0.0))
+
+
+def clipped_score(model, high, low, *, saturation, floor, lambda_chi):
+    """The change score of clipped capture pixels, from the one thing they say:
+    the scene was at least ``saturation`` (``high``) or at most ``floor``
+    (``low``) there.  The bound of the residual, ``saturation - model`` or
+    ``model - floor``, soft-thresholded as eq. 13's ``chi`` is
+    (:func:`optimal_chi`); NaN (no evidence) where the bound is not positive,
+    the model is unknown or the pixel is not clipped.
+
+    Parameters
+    ----------
+    model : ndarray, shape (H, W)
+        The registration's model at those pixels (:func:`model_values`).
+    high, low : ndarray of bool, shape (H, W)
+        Pixels at the capture's saturation value, at its floor.
+    saturation, floor : float
+        Those levels, in the units of ``model``.
+    lambda_chi : float
+
+    Returns
+    -------
+    ndarray of float32, shape (H, W)
+    """
+    model = np.asarray(model, np.float64)
+    bound = np.where(high, saturation - model, np.where(low, model - floor, np.nan))
+    known = np.isfinite(bound) & (bound > 0)
+    score = np.full(model.shape, np.nan, np.float32)
+    score[known] = optimal_chi(bound[known], lambda_chi=lambda_chi)
+    return score
+
+
+_SECOND_DIFFERENCE = np.array([[1.0, -2.0, 1.0]], np.float32)
+
+
+def change_candidates(score, threshold, *, params=ChangeParams()):
+    """Pixels that may belong to a change: above ``hysteresis * threshold`` and at
+    least ``half_max`` times the largest score within ``half_max_window``.
+
+    Local (a window of ``half_max_window // 2`` px around a pixel decides), so a
+    tile computes it on its core grown by ``params.margin``.
+
+    Parameters
+    ----------
+    score : ndarray, shape (H, W)
+        ``|chi|``; NaN or 0 where nothing is known.
+    threshold : float
+        From :func:`change_threshold`.
+
+    Returns
+    -------
+    ndarray of bool, shape (H, W)
+    """
+    score = np.nan_to_num(np.asarray(score, dtype=np.float32))
+    mask = score > params.hysteresis * threshold
+    if params.half_max_window > 1:
+        kernel = np.ones((params.half_max_window, params.half_max_window), np.uint8)
+        mask &= score >= params.half_max * cv2.dilate(score, kernel)  # a maximum filter
+    return mask
+
+
+def label_components(mask, score):
+    """8-connected components of ``mask`` with their area and largest score.
+
+    Returns
+    -------
+    labels : ndarray of int32, shape (H, W)
+        0 background, 1..n components.
+    area : ndarray of int64, shape (n + 1,)
+    peak : ndarray of float32, shape (n + 1,)
+        Largest ``score`` of each component (a component is a change when its
+        peak reaches the threshold: hysteresis).
+    """
+    labels, n = ndimage.label(mask, structure=np.ones((3, 3), bool))
+    labels = labels.astype(np.int32)
+    area = np.bincount(labels.ravel(), minlength=n + 1).astype(np.int64)
+    peak = np.zeros(n + 1, dtype=np.float32)
+    if n:
+        np.maximum.at(peak, labels.ravel(), np.nan_to_num(np.asarray(score, np.float32)).ravel())
+    peak[0] = 0.0
+    return labels, area, peak
+
+
+def keep_components(area, peak, threshold, *, params=ChangeParams()):
+    """Boolean per component (index 0 = background, never kept): large enough and
+    reaching the threshold."""
+    keep = (area >= params.min_area) & (peak > threshold)
+    keep[0] = False
+    return keep
+
+
+def fill_holes(mask, *, params=ChangeParams()):
+    """Fill holes smaller than ``min_area`` inside changes: 4-connected background
+    regions enclosed by one 8-connected change (background that reaches the
+    border of ``mask`` is not a hole).  Works object by object, on bounding boxes,
+    so its cost follows the changes rather than the window."""
+    out = mask.copy()
+    if params.min_area <= 1 or not mask.any():
+        return out
+    labels, _ = ndimage.label(mask, structure=np.ones((3, 3), bool))
+    for i, box in enumerate(ndimage.find_objects(labels), 1):
+        box = tuple(slice(max(b.start - 1, 0), b.stop + 1) for b in box)
+        holes = ndimage.binary_fill_holes(labels[box] == i) & ~mask[box]
+        if holes.any():
+            pieces, _ = ndimage.label(holes)
+            small = np.bincount(pieces.ravel()) < params.min_area
+            small[0] = False
+            out[box] |= small[pieces]
+    return out
+
+
+def change_mask(score, threshold, *, params=ChangeParams()):
+    """Boolean change mask of a whole score image (the tiled pipeline computes the
+    same from the pieces :func:`change_candidates`, :func:`label_components`,
+    :func:`keep_components` and :func:`fill_holes`, merging labels across seams).
+
+    Parameters
+    ----------
+    score : ndarray, shape (H, W)
+        ``|chi|``, 0 where nothing is known.
+    threshold : float
+        From :func:`change_threshold`.
+
+    Returns
+    -------
+    ndarray of bool, shape (H, W)
+    """
+    labels, area, peak = label_components(change_candidates(score, threshold, params=params), score)
+    return fill_holes(keep_components(area, peak, threshold, params=params)[labels], params=params)
+
+
+@numba.njit(nogil=True, cache=True)
+def _lookup(mask, hom, ref_shape, ref_origin, dist_origin, iterations):
+    out = np.zeros(ref_shape, dtype=np.uint8)
+    hd, wd = mask.shape
+    for v in range(ref_shape[0]):
+        yg = v + ref_origin[0]
+        for u in range(ref_shape[1]):
+            xg = u + ref_origin[1]
+            row = yg - dist_origin[0]
+            xs = 0.0
+            ri = min(max(int(round(row)), 0), hd - 1)
+            for _ in range(iterations):
+                h = hom[ri]
+                den = h[2, 0] * xg + h[2, 1] * yg + h[2, 2]
+                xs = (h[0, 0] * xg + h[0, 1] * yg + h[0, 2]) / den
+                row = (h[1, 0] * xg + h[1, 1] * yg + h[1, 2]) / den - dist_origin[0]
+                nxt = min(max(int(round(row)), 0), hd - 1)
+                if nxt == ri:  # a fixed point: further iterations repeat this one exactly
+                    break
+                ri = nxt
+            col = xs - dist_origin[1]
+            ri, ci = int(round(row)), int(round(col))
+            if 0 <= ri < hd and 0 <= ci < wd:
+                out[v, u] = mask[ri, ci]
+    return out
+
+
+def changes_to_reference(mask, trajectory, *, axes, camera, reference_shape, reference_origin_yx=(0, 0),
+                         distorted_origin_yx=(0, 0), iterations=4):
+    """Mark the reference pixels that the estimated poses carry onto changed pixels.
+
+    Each reference pixel is carried forward by the pose of the row it lands in,
+    found by a fixed-point iteration (a rolling-shutter row depends on where the
+    point lands), and takes the mask value there.
+
+    Parameters
+    ----------
+    mask : ndarray of bool, shape (H, W)
+        Changes in the distorted grid.
+    trajectory : ndarray, shape (H, D)
+        Per-row centroid poses over ``axes`` (global pose coordinates).
+    camera : Camera
+        Intrinsics of the whole image.
+    reference_shape : tuple of int
+        (Hr, Wr) of the reference window to fill.
+
+    Returns
+    -------
+    ndarray of uint8, shape reference_shape
+    """
+    hom = pose_homographies(np.nan_to_num(trajectory), camera, axes=axes)
+    return _lookup(np.asarray(mask, dtype=np.uint8), np.ascontiguousarray(hom), tuple(int(v) for v in reference_shape),
+                   np.asarray(reference_origin_yx, dtype=np.float64), np.asarray(distorted_origin_yx, dtype=np.float64),
+                   int(iterations))
+
+
+@dataclass(frozen=True)
+class ChangeResult:
+    """Changes of one whole window (see :func:`detect_changes`).
+
+    Attributes
+    ----------
+    score : ndarray, shape (H, W), float32
+        ``|chi|``.
+    mask : ndarray of bool, shape (H, W)
+        Changes in the distorted grid.
+    mask_reference : ndarray of bool, shape (H, W)
+        Changes in the reference grid.
+    threshold : float
+    """
+
+    score: np.ndarray
+    mask: np.ndarray
+    mask_reference: np.ndarray
+    threshold: float
+
+
+def detect_changes(registration, distorted, *, camera, params=ChangeParams()):
+    """Change masks of a whole image from its :class:`ops.Registration`.
+
+    The tiled pipeline computes the same from the same pieces, tile by tile.
+
+    Parameters
+    ----------
+    registration : Registration
+        Of ``distorted`` against a reference of the same shape (origins 0).
+    distorted : ndarray, shape (H, W)
+    camera : Camera
+
+    Returns
+    -------
+    ChangeResult
+    """
+    score = change_score(registration.chi, registration.registered, params=params)
+    residual = np.where(registration.valid, distorted - registration.registered, 0.0)
+    threshold = change_threshold(score_histogram(residual, score, registration.valid), params=params)
+    mask = change_mask(score, threshold, params=params)
+    ref = changes_to_reference(mask, registration.trajectory, axes=registration.axes, camera=camera,
+                               reference_shape=mask.shape)
+    return ChangeResult(score, mask, ref > 0, threshold)

@@ -1,0 +1,408 @@
+"""A dense relative-depth map for the whole residual (METHOD.md section 3,
+item 8, extended from change components to every pixel).
+
+The registration fits each row's weights to one plane.  A ground-level scene
+has depth everywhere: a nearer tree moves more under the camera's
+translations than the plane the row settled on, a farther one less, and the
+residual keeps their edges.  With the rows' weights fixed, the reference is
+warped and blurred again at a set of relative inverse depths ``q`` (the
+translations ``tx``, ``ty`` and the scale ``s`` of every weighted pose
+multiplied by ``q``, rotations as they are; ``q = 1`` is the registered plane,
+``q = 0`` infinitely far), the per-pixel residual, truncated at the change
+threshold, is averaged over a window, and each pixel takes the depth of the
+lowest window cost among those it tries (every 4th depth, then the depths
+around its best one: :attr:`DepthMapParams.stride`):
+
+- only where that cost is clearly lower than the registered plane's (at most
+  :attr:`DepthMapParams.gain` times it): ties and noise keep the plane;
+- only where the plane leaves unexplained structure: pixels with no residual
+  above half the threshold within the window keep the plane (flat, well
+  registered scenes cost nothing).
+
+The output is still the model's: at every pixel the reference warped and
+blurred by the row's estimated path at one depth, times the row's gain.  New
+content (a pasted change) is explained at no depth and stays in ``chi``.
+"""
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+
+from .._camera import full_poses
+from .._oracle import optimal_chi
+from .._warp import _bilinear, _inverse_map
+
+__all__ = ["DepthMapParams", "DepthMapResult", "depth_map", "model_values"]
+
+
+@dataclass(frozen=True)
+class DepthMapParams:
+    """Tuning of :func:`depth_map`.
+
+    Attributes
+    ----------
+    max_inverse_depth : float
+        Largest relative inverse depth swept (3: a third of the registered
+        plane's distance); the sweep starts at 0 (infinitely far).
+    max_depths : int
+        Most depths rendered; the step is the one that moves the largest
+        translation of the window by one pixel, coarsened to this count.
+    stride : int
+        Coarse to fine: every ``stride``-th depth is tried at every pixel,
+        then each pixel tries the depths within ``stride`` steps of its best
+        coarse one (1: every depth everywhere).
+    window : int
+        Side of the square window the truncated residual is averaged over, px.
+    gain : float
+        A depth replaces the plane where its window cost is at most this
+        fraction of the plane's.
+    """
+
+    max_inverse_depth: float = 3.0
+    max_depths: int = 64
+    stride: int = 4
+    window: int = 7
+    gain: float = 0.85
+
+
+@dataclass
+class DepthMapResult:
+    """Result of :func:`depth_map`.
+
+    Attributes
+    ----------
+    registered, chi : ndarray, shape (H, W), float32
+        The registration's, re-rendered at their depth where one was taken.
+    inverse_depth : ndarray, shape (H, W), float32
+        Relative inverse depth taken per pixel, 1 (the registered plane) elsewhere.
+    explained : ndarray of bool, shape (H, W)
+        Pixels above the threshold on the plane that fall below it at their depth.
+    depths : int
+        Depths rendered (0 when the residual had no structure to explain).
+    """
+
+    registered: np.ndarray
+    chi: np.ndarray
+    inverse_depth: np.ndarray
+    explained: np.ndarray
+    depths: int = 0
+
+
+def depth_map(registration, reference, distorted, *, camera, threshold, reference_origin_yx=(0, 0),
+              distorted_origin_yx=(0, 0), lambda_chi=0.02, params=None, allowed=None):
+    """Re-render a registration per pixel at the depth that explains it best.
+
+    Parameters
+    ----------
+    registration : Registration
+        Of ``distorted`` against ``reference`` (its row weights are re-used).
+    reference : ndarray, shape (Hr, Wr), float32
+        The reference window the registration used (NaN for no-data).
+    distorted : ndarray, shape (H, W), float32
+        The capture window (the values the registration fitted).
+    camera : Camera
+        Intrinsics of the whole image.
+    threshold : float
+        The change threshold (intensity units): residuals are truncated at it.
+    reference_origin_yx, distorted_origin_yx : tuple of int
+        The windows' positions in the whole image.
+    lambda_chi : float
+        eq. 13's weight of ``||chi||_1``, for the change term of re-rendered pixels.
+    params : DepthMapParams, optional
+    allowed : ndarray of bool, shape (H, W), optional
+        Only these pixels may take a depth (default: all).
+
+    Returns
+    -------
+    DepthMapResult
+    """
+    params = params or DepthMapParams()
+    base = registration.registered
+    g = np.asarray(distorted, np.float32)
+    tau = float(threshold)
+    out = DepthMapResult(base.copy(), registration.chi.copy(), np.ones(g.shape, np.float32),
+                         np.zeros(g.shape, bool))
+    valid = registration.valid & np.isfinite(base)
+    residual = np.where(valid, np.abs(g - base), 0.0).astype(np.float32)
+    active = _active(residual, valid, tau, params.window)
+    if allowed is not None:
+        active &= np.asarray(allowed, bool)
+    if not active.any() or not tau > 0:
+        return out
+    rows = _RowPoses.of(registration, g.shape[0])
+    step = 1.0 / max(rows.largest_translation(), 1.0)
+    count = int(min(params.max_depths, math.floor(params.max_inverse_depth / step) + 1))
+    qs = np.linspace(0.0, params.max_inverse_depth, max(count, 2))
+    render_mask = cv2.dilate(active.astype(np.uint8), np.ones((params.window, params.window), np.uint8)) > 0
+    cost_plane = _window_cost(np.where(valid, residual, tau), tau, params.window)
+    best = np.full(g.shape, np.inf, np.float32)
+    chosen = np.full(g.shape, np.nan, np.float32)
+    depth = np.ones(g.shape, np.float32)
+    geometry = _geometry(camera, reference_origin_yx, distorted_origin_yx)
+    ref = np.ascontiguousarray(reference, np.float32)
+    _sweep(ref, rows.poses6, rows.weights, rows.offsets, rows.gain, *geometry, qs.astype(np.float64),
+           render_mask.astype(np.uint8), active.astype(np.uint8), np.ascontiguousarray(g), tau, int(params.window),
+           int(params.stride), best, chosen, depth)
+    take = active & np.isfinite(chosen) & (best <= params.gain * cost_plane)
+    out.registered[take] = chosen[take]
+    out.inverse_depth[take] = depth[take]
+    r = g[take] - chosen[take]
+    out.chi[take] = optimal_chi(r, lambda_chi=lambda_chi)
+    out.explained = take & (residual > tau) & (np.abs(g - out.registered) <= tau)
+    out.depths = len(qs)
+    return out
+
+
+def model_values(registration, reference, mask, *, camera, reference_origin_yx=(0, 0), distorted_origin_yx=(0, 0)):
+    """The registration's model at the pixels of ``mask``, whatever the
+    capture holds there: each row's weighted poses applied to the reference
+    (the registered plane), times the column gain.
+
+    Parameters
+    ----------
+    registration : Registration
+    reference : ndarray, shape (Hr, Wr), float32
+        The reference window the registration used (NaN for no-data).
+    mask : ndarray of bool, shape (H, W)
+    camera : Camera
+    reference_origin_yx, distorted_origin_yx : tuple of int
+
+    Returns
+    -------
+    ndarray of float32, shape (H, W)
+        NaN off ``mask``, in rows without weights and where a pose leaves
+        valid reference data.
+    """
+    rows = _RowPoses.of(registration, mask.shape[0])
+    return rows.render(np.ascontiguousarray(reference, np.float32),
+                       _geometry(camera, reference_origin_yx, distorted_origin_yx), 1.0, np.asarray(mask, bool))
+
+
+def _active(residual, valid, tau, window):
+    """Pixels whose window holds residual above half the threshold: where the
+    plane leaves structure unexplained."""
+    seed = (valid & (residual > 0.5 * tau)).astype(np.uint8)
+    return (cv2.dilate(seed, np.ones((window, window), np.uint8)) > 0) & valid
+
+
+def _window_cost(err, tau, window):
+    """Mean over a ``window`` square of the residual truncated at ``tau``."""
+    return cv2.boxFilter(np.minimum(err, tau).astype(np.float32), -1, (window, window),
+                         borderType=cv2.BORDER_REPLICATE)
+
+
+def _geometry(camera, reference_origin_yx, distorted_origin_yx):
+    """(focal, cx, cy in the reference window, row and column offset of the
+    capture window in it)."""
+    return (float(camera.focal), float(camera.center_xy[0] - reference_origin_yx[1]),
+            float(camera.center_xy[1] - reference_origin_yx[0]),
+            float(distorted_origin_yx[0] - reference_origin_yx[0]), float(distorted_origin_yx[1] - reference_origin_yx[1]))
+
+
+@dataclass
+class _RowPoses:
+    """Every row's weighted poses, flattened: row ``i`` owns ``poses6[offsets[i]:
+    offsets[i + 1]]`` (full poses, the slow rotations added) and their weights."""
+
+    poses6: np.ndarray
+    weights: np.ndarray
+    offsets: np.ndarray
+    gain: np.ndarray
+
+    @classmethod
+    def of(cls, registration, height):
+        some = next((p for p, _ in registration.row_weights.values()), np.zeros((0, 1)))
+        axes = registration.axes[:some.shape[1]]
+        poses, weights, offsets = [], [], [0]
+        for row in range(height):
+            p, w = registration.row_weights.get(row, (np.zeros((0, len(axes))), np.zeros(0)))
+            p6 = full_poses(p, axes)
+            if registration.slow is not None and len(w):
+                p6 = p6 + registration.slow.pose6(row)  # rotations only: not scaled by depth
+            poses.append(p6)
+            weights.append(np.asarray(w, np.float64))
+            offsets.append(offsets[-1] + len(w))
+        gain = registration.column_gain
+        return cls(np.concatenate(poses) if poses else np.zeros((0, 6)), np.concatenate(weights),
+                   np.asarray(offsets, np.int64), np.ones(1) if gain is None else np.asarray(gain, np.float64))
+
+    def largest_translation(self):
+        """Largest displacement (px) a weighted pose's translation gives a pixel."""
+        if not len(self.poses6):
+            return 0.0
+        return float(np.max(np.hypot(self.poses6[:, 0], self.poses6[:, 1])))
+
+    def render(self, ref, geometry, q, mask):
+        out = np.full(mask.shape, np.nan, np.float32)
+        maps = _pose_maps(self.poses6, *geometry[:3])
+        _render_depth(ref, maps, self.poses6, self.weights, self.offsets, self.gain, *geometry[1:], q,
+                      mask.astype(np.uint8), out)
+        return out
+
+
+@numba.njit(nogil=True, cache=True)
+def _pose_maps(poses6, focal, cx, cy):
+    """The rotation part of every pose's inverse map (:func:`_inverse_map`),
+    (N, 9): it does not depend on the depth, which scales only the
+    translations and the scale."""
+    maps = np.empty((poses6.shape[0], 9))
+    for k in range(poses6.shape[0]):
+        maps[k] = _inverse_map(poses6[k], focal, cx, cy)[0]
+    return maps
+
+
+@numba.njit(nogil=True, cache=True)
+def _render_pixel(ref, maps, poses6, weights, s0, s1, q, x, y, cx, cy):
+    """One pixel of a row: the weighted sum of the samples of its poses
+    ``s0:s1`` at inverse depth ``q`` (translations and scale times ``q``; no
+    gain); NaN where a pose leaves valid reference data."""
+    acc = 0.0
+    for k in range(s0, s1):
+        val = _sample(ref, maps[k], poses6[k, 0] * q, poses6[k, 1] * q, 1.0 + poses6[k, 2] * q, x, y, cx, cy)
+        if math.isnan(val):
+            return np.nan
+        acc += weights[k] * val
+    return acc
+
+
+@numba.njit(nogil=True, cache=True)
+def _render_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, q, mask, out):
+    """``out[i, j]`` = row ``i``'s weighted poses at inverse depth ``q``
+    (``maps``: :func:`_pose_maps`) applied to ``ref``, times the column gain,
+    where ``mask``; NaN where a pose leaves valid reference data."""
+    height, width = out.shape
+    per_column = gain.shape[0] == width
+    for i in range(height):
+        s0, s1 = offsets[i], offsets[i + 1]
+        if s0 == s1:
+            continue
+        for j in range(width):
+            if mask[i, j] != 0:
+                val = _render_pixel(ref, maps, poses6, weights, s0, s1, q, j + dx, i + dy, cx, cy)
+                if not math.isnan(val):
+                    out[i, j] = val * (gain[j] if per_column else 1.0)
+
+
+@numba.njit(nogil=True, cache=True)
+def _sweep(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, qs, render_mask, active, g, tau, window,
+           stride, best, chosen, depth):
+    """The depths of ``qs`` (ascending), coarse to fine: every ``stride``-th
+    depth (and the last) at every ``active`` pixel, then each active pixel
+    the depths within ``stride`` steps of its best coarse one.  A depth is
+    rendered where ``render_mask`` (as :func:`_render_depth`) and, in the fine
+    pass, where the best coarse depths of the active pixels in the window
+    span a range within ``stride`` steps of it; its residual,
+    truncated at ``tau`` (``tau`` where not rendered), is averaged over the
+    ``window`` square (borders replicated, as :func:`_window_cost`), and an
+    active pixel takes the depth (``best`` cost, ``chosen`` value, ``depth``)
+    where its cost is lower than every earlier evaluated depth's.  With
+    ``stride`` 1 every depth is evaluated everywhere."""
+    height, width = g.shape
+    count = qs.shape[0]
+    half = window // 2
+    err = np.full((height, width), np.float32(tau), np.float32)
+    rendered = np.full((height, width), np.nan, np.float32)
+    across = np.zeros((height, width), np.float64)
+    index = np.full((height, width), -1, np.int64)  # best coarse depth per active pixel
+    want = np.zeros((height, width), np.uint8)
+    maps = _pose_maps(poses6, focal, cx, cy)
+    for k in range(count):
+        if k % stride == 0 or k == count - 1:  # lo, hi unused in the coarse pass
+            _one_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, qs[k], k, render_mask, active,
+                       index, index, g, tau, half, -1, want, err, rendered, across, best, chosen, depth, index)
+    if stride <= 1:
+        return
+    lo, hi = _window_range(index, active, half)
+    for k in range(count):
+        if not (k % stride == 0 or k == count - 1):
+            _one_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, qs[k], k, render_mask, active,
+                       lo, hi, g, tau, half, stride, want, err, rendered, across, best, chosen, depth, index)
+
+
+@numba.njit(nogil=True, cache=True)
+def _one_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, q, k, render_mask, active, lo, hi, g,
+               tau, half, stride, want, err, rendered, across, best, chosen, depth, index):
+    """Depth ``k`` (inverse depth ``q``) of :func:`_sweep`.  ``stride`` -1: the
+    coarse pass (every pixel of ``render_mask``; ``index`` records each active
+    pixel's best coarse depth); else only pixels whose window holds an active
+    pixel with a best coarse depth within ``stride`` of ``k`` (``lo``, ``hi``:
+    the window's range of them) are rendered, and only such active pixels are
+    evaluated."""
+    height, width = err.shape
+    area = float((2 * half + 1) * (2 * half + 1))
+
+    for i in range(height):
+        for j in range(width):
+            want[i, j] = render_mask[i, j] != 0 and (stride < 0 or (lo[i, j] - stride < k < hi[i, j] + stride))
+            if want[i, j]:
+                rendered[i, j] = np.nan
+    _render_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, q, want, rendered)
+    for i in range(height):
+        for j in range(width):
+            if want[i, j] != 0:
+                if math.isnan(rendered[i, j]):
+                    err[i, j] = tau
+                else:
+                    e = abs(g[i, j] - rendered[i, j])
+                    err[i, j] = tau if e > tau else e  # NaN (no capture data) stays NaN
+    for i in range(height):
+        for j in range(width):
+            if want[i, j] != 0:
+                acc = 0.0
+                for d in range(-half, half + 1):
+                    acc += err[i, min(max(j + d, 0), width - 1)]
+                across[i, j] = acc
+    for i in range(height):
+        for j in range(width):
+            if active[i, j] == 0 or math.isnan(rendered[i, j]):
+                continue
+            if stride > 0 and not (index[i, j] >= 0 and abs(k - index[i, j]) < stride):
+                continue
+            acc = 0.0
+            for d in range(-half, half + 1):
+                acc += across[min(max(i + d, 0), height - 1), j]
+            cost = acc / area
+            if cost < best[i, j]:
+                best[i, j] = cost
+                chosen[i, j] = rendered[i, j]
+                depth[i, j] = q
+                if stride < 0:
+                    index[i, j] = k
+
+
+@numba.njit(nogil=True, cache=True)
+def _window_range(index, active, half):
+    """Per pixel, the smallest and largest ``index`` of the active pixels in
+    its window (lo > hi where there are none)."""
+    height, width = index.shape
+    big = np.iinfo(np.int64).max // 2
+    row_lo = np.full((height, width), big, np.int64)
+    row_hi = np.full((height, width), -big, np.int64)
+    for i in range(height):
+        for j in range(width):
+            if active[i, j] != 0 and index[i, j] >= 0:
+                for d in range(max(j - half, 0), min(j + half, width - 1) + 1):
+                    row_lo[i, d] = min(row_lo[i, d], index[i, j])
+                    row_hi[i, d] = max(row_hi[i, d], index[i, j])
+    lo = np.full((height, width), big, np.int64)
+    hi = np.full((height, width), -big, np.int64)
+    for i in range(height):
+        for j in range(width):
+            for d in range(max(i - half, 0), min(i + half, height - 1) + 1):
+                lo[i, j] = min(lo[i, j], row_lo[d, j])
+                hi[i, j] = max(hi[i, j], row_hi[d, j])
+    return lo, hi
+
+
+@numba.njit(nogil=True, cache=True)
+def _sample(ref, m, tx, ty, sc, x, y, cx, cy):
+    """The reference at the point a pose (rotation map ``m``, translations
+    ``tx``, ``ty`` px, scale ``sc``) carries capture pixel (x, y) to, in the
+    reference window's frame: bilinear; NaN outside it or on no-data."""
+    ux = (x - cx - tx) / sc
+    uy = (y - cy - ty) / sc
+    h2 = m[6] * ux + m[7] * uy + m[8]
+    return _bilinear(ref, (m[0] * ux + m[1] * uy + m[2]) / h2 + cx, (m[3] * ux + m[4] * uy + m[5]) / h2 + cy)

@@ -1,0 +1,244 @@
+"""Rows' weights and the dense depth map, estimated in turn (METHOD.md section
+3, item 8, extended).
+
+The depth-layer step keeps the rows' weights of the registered plane.  Where a
+row holds several depths the registration smeared its weights over several
+poses to fit them all at once, so every depth re-rendered with those weights
+stays as blurred as the plane's.  With the depth map fixed, eq. 13 is solved
+again per row with ``F_i`` built at each pixel's own depth (column ``k`` at
+pixel ``j``: the reference sampled at pose ``tau_k`` with its translations and
+scale times that pixel's relative inverse depth ``q_j``, rotations as they
+are), and the depth step is run again with the new weights.
+
+Rule: a round is kept only when eq. 13's total objective of the final model
+(the Huber loss of ``g`` minus the re-rendered reference plus
+``lambda_w`` times the weights' sum, over the pixels both models cover)
+decreases; the first round that does not is dropped and the rounds stop.
+Pixels of components found to be depth layers are left out of the re-solve
+(the depth map does not hold their depth), and so are pixels still above the
+change threshold (change candidates carry no evidence of the motion).  Later
+rounds' depth maps may give a depth only to pixels the first one gave one or
+left below the threshold: fitting the rows to the depths taken would otherwise
+make a new object that took a depth by chance more consistent with it, round
+after round, until it is explained away.  Only tiles whose depth map took a
+depth on at least :attr:`AlternateParams.min_share` of their pixels pay for
+it, and only rows holding such pixels are solved again.
+"""
+
+import dataclasses
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from .._camera import full_poses
+from ._depthmap import _geometry, _sample, depth_map
+from ._layers import depth_layers
+from .._oracle import _huber_loss, optimal_chi
+from ..registration._rowproblem import _centroid, _Solver
+from ..registration._rowsolve import _solve_huber_nn
+from .._warp import _inverse_map
+
+__all__ = ["AlternateParams", "depth_step"]
+
+
+@dataclass(frozen=True)
+class AlternateParams:
+    """Tuning of the rounds of :func:`depth_step`.
+
+    Attributes
+    ----------
+    rounds : int
+        Most rounds of (re-solve the rows at their depths, depth step again); 0: none.
+    min_share : float
+        Rounds run only when the depth map took a depth on at least this
+        fraction of the valid pixels.
+    tol, max_outer, max_add : the row solver's settings.
+    """
+
+    rounds: int = 2
+    min_share: float = 0.05
+    tol: float = 1e-6
+    max_outer: int = 100
+    max_add: int = 32
+
+
+def depth_step(registration, reference, distorted, *, camera, threshold, space, lambda_w, lambda_chi,
+               reference_origin_yx=(0, 0), distorted_origin_yx=(0, 0), params=None):
+    """The depth-layer step with the rows' weights and the depth map estimated in turn.
+
+    Parameters
+    ----------
+    registration : Registration
+    reference : ndarray, shape (Hr, Wr), float32
+        The reference window the registration used (NaN for no-data).
+    distorted : ndarray, shape (H, W), float32
+        The capture window.
+    camera : Camera
+    threshold : float
+        The change threshold (intensity units).
+    space : PoseSpace
+        The row neighbourhood ``N(c, b, s)`` of the registration (resolved steps):
+        each re-solved row searches it around its centroid, widened to cover the
+        poses it already weights.
+    lambda_w, lambda_chi : float
+        eq. 13's weights.
+    reference_origin_yx, distorted_origin_yx : tuple of int
+    params : AlternateParams, optional
+
+    Returns
+    -------
+    LayerResult, DepthMapResult, dict
+        The depth-layer components' result (``registered``, ``chi`` and
+        ``parallax`` those of the whole step), the dense map of the kept round,
+        and ``rounds`` (kept), ``objectives`` (eq. 13 per round, the first before
+        any), ``rows`` (re-solved in the last round).
+    """
+    params = params or AlternateParams()
+    windows = dict(camera=camera, threshold=threshold, reference_origin_yx=reference_origin_yx,
+                   distorted_origin_yx=distorted_origin_yx, lambda_chi=lambda_chi)
+    g = np.asarray(distorted, np.float32)
+    layers, dense = _one_step(registration, reference, g, windows)
+    info = {"rounds": 0, "objectives": [], "rows": 0}
+    taken = dense.inverse_depth != 1.0
+    # later rounds: no new depth for what the first round left a change candidate
+    allowed = taken | (np.abs(g - layers.registered) <= threshold)
+    if params.rounds <= 0 or taken.sum() < params.min_share * max(int(registration.valid.sum()), 1):
+        return layers, dense, info
+    objective = _objective(registration, layers.registered, g, lambda_w, lambda_chi)
+    info["objectives"].append(objective[0])
+    for _ in range(params.rounds):
+        rows = np.nonzero(taken.any(axis=1))[0]
+        unexplained = ~(np.abs(g - layers.registered) <= threshold)  # change candidates: no evidence of motion
+        moved = _resolve_rows(registration, reference, g, dense.inverse_depth,
+                              (layers.parallax & ~dense.explained) | unexplained,
+                              rows, camera, space, lambda_w, lambda_chi, reference_origin_yx, distorted_origin_yx,
+                              params)
+        new_layers, new_dense = _one_step(moved, reference, g, windows, allowed)
+        new = _objective(moved, new_layers.registered, g, lambda_w, lambda_chi, objective[1])
+        old = _objective(registration, layers.registered, g, lambda_w, lambda_chi, new[1])
+        info["objectives"].append(new[0])
+        info["rows"] = len(rows)
+        if not new[0] < old[0]:
+            break
+        registration, layers, dense, objective = moved, new_layers, new_dense, new
+        info["rounds"] += 1
+        taken = dense.inverse_depth != 1.0
+    return layers, dense, info
+
+
+def _one_step(registration, reference, g, windows, allowed=None):
+    """Components tested as depth layers, then the dense depth map of the rest
+    (on ``allowed`` pixels)."""
+    layers = depth_layers(registration, reference, g, **windows)
+    layered = dataclasses.replace(registration, registered=layers.registered, chi=layers.chi)
+    dense = depth_map(layered, reference, g, allowed=allowed, **windows)
+    layers.registered, layers.chi = dense.registered, dense.chi
+    layers.parallax = layers.parallax | dense.explained
+    return layers, dense
+
+
+def _objective(registration, registered, g, lambda_w, lambda_chi, common=None):
+    """eq. 13 of a model (its registered image and rows' weights), on the capture
+    divided by the column gain, over its finite pixels (and ``common``'s);
+    returns (value, the pixels counted)."""
+    gain = 1.0 if registration.column_gain is None else registration.column_gain[None, :]
+    cover = registration.valid & np.isfinite(registered)
+    if common is not None:
+        cover &= common
+    r = ((g - np.where(cover, registered, 0.0)) / gain)[cover]
+    weights = sum(float(w.sum()) for _, w in registration.row_weights.values())
+    return _huber_loss(r, 0.5 * lambda_chi) + lambda_w * weights, cover
+
+
+def _resolve_rows(registration, reference, g, inverse_depth, exclude, rows, camera, space, lambda_w, lambda_chi,
+                  reference_origin_yx, distorted_origin_yx, params):
+    """A copy of ``registration`` with ``rows`` solved again (eq. 13) with every
+    pixel's columns at its own inverse depth, warm-started from their weights;
+    the plane (inverse depth 1) re-rendered with the new weights."""
+    ref = np.ascontiguousarray(reference, np.float32)
+    focal, cx, cy, dy, dx = _geometry(camera, reference_origin_yx, distorted_origin_yx)
+    gain = np.ones(g.shape[1]) if registration.column_gain is None else np.asarray(registration.column_gain, np.float64)
+    weights = dict(registration.row_weights)
+    registered, chi, valid = registration.registered.copy(), registration.chi.copy(), registration.valid.copy()
+    axes = space.axes
+    for i in rows:
+        if i not in weights or not len(weights[i][1]):
+            continue
+        poses, w_now = weights[i]
+        index, grid = _grid(space, poses, w_now)
+        poses6 = full_poses(grid, axes)
+        if registration.slow is not None:
+            poses6 = poses6 + registration.slow.pose6(int(i))
+        a = np.zeros((len(grid), g.shape[1]), np.float32)
+        ok = _build_row_depth(ref, poses6, inverse_depth[i].astype(np.float64), focal, cx, cy, i + dy, dx, a)
+        use = (ok == 1) & registration.valid[i] & ~exclude[i]
+        if use.sum() < _Solver.min_valid(use.size):
+            continue
+        a[:, ~use] = 0.0
+        g_row = np.where(use, g[i] / gain, 0.0).astype(np.float64)
+        w = _warm_start(space, index, poses, w_now)
+        _solve_huber_nn(a, g_row, w, float(lambda_w), 0.5 * float(lambda_chi), float(params.tol),
+                        int(params.max_outer), int(params.max_add))
+        keep = w > 0
+        if not keep.any():
+            continue
+        plane = np.zeros(g.shape[1], np.float32)
+        ok1 = _build_row_depth(ref, poses6[keep], np.ones(g.shape[1]), focal, cx, cy, i + dy, dx,
+                               np.zeros((int(keep.sum()), g.shape[1]), np.float32), plane, w[keep])
+        row_ok = (ok1 == 1) & registration.valid[i]
+        weights[i] = (grid[keep], w[keep])
+        registered[i] = np.where(row_ok, plane * gain, np.nan)
+        chi[i] = np.where(row_ok, optimal_chi(g[i] - registered[i], lambda_chi=lambda_chi), 0.0)
+        valid[i] = row_ok
+    return dataclasses.replace(registration, registered=registered, chi=chi, valid=valid, row_weights=weights)
+
+
+def _grid(space, poses, w):
+    """The row neighbourhood around the row's centroid, widened to cover its
+    weighted poses: lattice indices and poses."""
+    step = np.asarray(space.step)
+    centre = space.snap(_centroid(poses, w))
+    reach = np.abs(np.rint(poses / step).astype(np.int64) - centre).max(axis=0)
+    half = np.maximum(np.rint(np.asarray(space.half_width) / step), reach) * step
+    return space.widened(tuple(half)).grid(centre * step)
+
+
+def _warm_start(space, index, poses, w):
+    """The row's weights on the grid ``index`` (their lattice points)."""
+    out = np.zeros(len(index))
+    lookup = {tuple(k): n for n, k in enumerate(index.tolist())}
+    for p, v in zip(np.rint(poses / np.asarray(space.step)).astype(np.int64).tolist(), w):
+        n = lookup.get(tuple(p))
+        if n is not None:
+            out[n] += v
+    return out
+
+
+@numba.njit(nogil=True, cache=True)
+def _build_row_depth(ref, poses6, q, focal, cx, cy, y, dx, out, plane=None, w=None):
+    """``out`` (K, W): column ``k`` of ``F_i`` at every pixel ``j`` of capture
+    row ``y`` (reference frame) sampled at pose ``k`` with translations and
+    scale times ``q[j]``; 0 where a pose leaves valid data.  Returns uint8 (W,),
+    1 where every pose sampled valid data.  With ``plane`` and ``w``, also
+    ``plane = w . out``."""
+    k_count, width = out.shape
+    valid = np.ones(width, np.uint8)
+    for k in range(k_count):
+        p = poses6[k]
+        m, tx, ty, sc = _inverse_map(p, focal, cx, cy)
+        s = sc - 1.0
+        for j in range(width):
+            v = _sample(ref, m, tx * q[j], ty * q[j], 1.0 + s * q[j], j + dx, y, cx, cy)
+            if np.isnan(v):
+                valid[j] = 0
+                out[k, j] = 0.0
+            else:
+                out[k, j] = v
+    if plane is not None:
+        for j in range(width):
+            acc = 0.0
+            for k in range(k_count):
+                acc += w[k] * out[k, j]
+            plane[j] = acc
+    return valid

@@ -1,0 +1,402 @@
+"""The compiled row loop of the propagation (METHOD.md section 3, step 2) and
+the structs it reads and writes.
+
+:func:`_propagate_rows` walks the rows in order, each on the grid
+``N(c, b, s)`` around its solved neighbour's centroid: it gathers the row's
+``F_i`` from pre-warped images, solves eq. 13 warm-started from the
+neighbour's weights (:func:`_row_step`) and follows the path, returning to
+Python (:mod:`ops.registration._propagate`) only when it needs a pre-warped image that is
+not made yet, leaves the table of them, or sees the path jump.
+
+Every kernel takes its many arrays as a few NamedTuples, grouped by who owns
+them: the run (:class:`_Context`), the neighbour a row starts from
+(:class:`_Neighbour`), one row (:class:`_Source`, :class:`_Row`) and work space
+(:class:`_Work`).
+"""
+
+from typing import NamedTuple
+
+import numba
+import numpy as np
+
+from ._rowsolve import _solve_huber_nn, _synthesize
+from .._warp import _gather_row
+
+__all__ = []
+
+_SUMS = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})
+
+#: A row whose centroid moves the window's farthest pixel more than this (px)
+#: away from where the path before it leads (its last pose plus its velocity)
+#: re-anchors the path: a block of rows from it on is solved jointly, as the
+#: start block is, on a grid wide enough for both the row's pose and the
+#: prediction, and the row is solved again around the block's centroid.  A
+#: camera path moves a pixel by a small fraction of this from one row to the
+#: next; a row that jumps is a real turn of the path or a fit that a change or
+#: an ambiguity (rz against ty on a single row) has pulled into a wrong basin,
+#: from which the rows after it could not climb out.  One row cannot tell the
+#: two apart (its own eq. 13 cost can be lower in the wrong basin); a block
+#: can.
+DRIFT_PX = 0.75
+#: ... plus this much (px) per row since the last row on the path: the
+#: velocity the prediction extrapolates is itself uncertain.
+DRIFT_PX_PER_ROW = 0.1
+
+
+# ----------------------------------------------------------------- the run's structs
+
+
+class _Settings(NamedTuple):
+    """The row solver's settings: eq. 13's ``lambda_w``, the Huber knee
+    ``lambda_chi / 2``, the KKT tolerance, iteration limits and the fewest
+    valid pixels a row needs."""
+
+    lam: float
+    delta: float
+    tol: float
+    max_outer: int
+    max_add: int
+    min_valid: int
+
+
+class _Prewarp(NamedTuple):
+    """The pre-warped images (stack (S, rows, cols) float32) and the table of
+    their slots by (other-axis lattice index - other_lo, band - band_lo), -1
+    where not made yet; bands of ``band`` rows with ``pad`` rows above and
+    below, columns offset by ``margin``."""
+
+    stack: np.ndarray
+    table: np.ndarray
+    other_lo: int
+    band_lo: int
+    band: int
+    pad: int
+    margin: int
+
+
+class _Lattice(NamedTuple):
+    """The row neighbourhood: lattice offsets (K, D) int64, counts per axis,
+    steps per axis, the dimensions of ty, tx and the one other axis (-1 when
+    absent), and per axis the pixels a unit moves the window's farthest pixel
+    (:func:`ops.registration._propagate._px_per_unit`)."""
+
+    offsets: np.ndarray
+    counts: np.ndarray
+    step: np.ndarray
+    ty_dim: int
+    tx_dim: int
+    other_dim: int
+    px_per_unit: np.ndarray
+
+
+class _Capture(NamedTuple):
+    """The distorted window (H, W) float32, its validity and the informative
+    rows (H,) bool."""
+
+    dist: np.ndarray
+    dist_valid: np.ndarray
+    informative: np.ndarray
+
+
+class _RowOutputs(NamedTuple):
+    """Per-row outputs the propagation writes: registered, chi, valid (H, W);
+    trajectory (H, D); row_state, row_gain (H,); weights (H, K) and lattice
+    centres (H, D) of every solved row."""
+
+    registered: np.ndarray
+    chi: np.ndarray
+    valid: np.ndarray
+    trajectory: np.ndarray
+    row_state: np.ndarray
+    row_gain: np.ndarray
+    weights: np.ndarray
+    centers: np.ndarray
+
+
+class _Context(NamedTuple):
+    """Everything the compiled propagation shares across rows: read
+    (``prewarp``, ``lattice``, ``settings``, ``capture``) and written
+    (``out``)."""
+
+    prewarp: _Prewarp
+    lattice: _Lattice
+    settings: _Settings
+    capture: _Capture
+    out: _RowOutputs
+
+
+# ------------------------------------------------------------ one row's structs
+
+
+class _Gather(NamedTuple):
+    """Where each pose k of a grid reads ``F_i``: pre-warped image ``slot[k]``
+    shifted by whole pixels ``shift_y[k]``, ``shift_x[k]`` (int64 (K,) each)."""
+
+    slot: np.ndarray
+    shift_y: np.ndarray
+    shift_x: np.ndarray
+
+
+class _Source(NamedTuple):
+    """Where one row reads ``F_i``: pose k reads row ``y - gather.shift_y[k]``
+    of ``stack[gather.slot[k]]`` from column ``x0 - gather.shift_x[k]`` on
+    (stack (S, rows, cols) float32)."""
+
+    stack: np.ndarray
+    gather: _Gather
+    y: int
+    x0: int
+
+
+class _Row(NamedTuple):
+    """One row of the capture, ``g`` (N,) float32 and its validity (N,) bool,
+    and the rows of the outputs it writes: registered, chi (N,) float32, valid
+    (N,) bool."""
+
+    g: np.ndarray
+    g_valid: np.ndarray
+    registered: np.ndarray
+    chi: np.ndarray
+    valid: np.ndarray
+
+
+class _Neighbour(NamedTuple):
+    """The solved row a row starts from: its centroid pose (D,), the lattice
+    centre of its grid (D,) int64 and its weights (K,) on that grid."""
+
+    centroid: np.ndarray
+    center: np.ndarray
+    weights: np.ndarray
+
+
+class _Work(NamedTuple):
+    """Work space of one row, overwritten by each: ``F_i`` (K, N) float32, the
+    weights (K,), the lattice centre of the grid (D,) int64 and where its poses
+    read (:class:`_Gather`)."""
+
+    a: np.ndarray
+    w: np.ndarray
+    center: np.ndarray
+    gather: _Gather
+
+
+# ------------------------------------------------------------------------ kernels
+
+
+@numba.njit(**_SUMS)
+def _row_step(source, row, settings, w, a):
+    """One row of the propagation in a single call (no Python in between):
+    gather ``F_i`` from ``source`` into the work array ``a`` (K, N), solve
+    eq. 13 warm-started from ``w`` (in place), and write the registered row,
+    the change term and the validity into ``row`` (NaN / 0 / False where
+    invalid).  Returns (objective, valid pixel count, whether the solve
+    converged); the objective is inf when too few pixels are valid to solve.
+    """
+    k_count, n = a.shape
+    delta = settings.delta
+    g_row, g_valid = row.g, row.g_valid
+    reg_out, chi_out, valid_out = row.registered, row.chi, row.valid
+    gather = source.gather
+    v = _gather_row(source.stack, gather.slot, gather.shift_y, gather.shift_x, source.y, source.x0, a)
+    g = np.empty(n)
+    count = 0
+    for j in range(n):
+        ok = v[j] != 0 and g_valid[j]
+        valid_out[j] = ok
+        if ok:
+            g[j] = g_row[j]
+            count += 1
+        else:
+            g[j] = 0.0
+            for k in range(k_count):
+                a[k, j] = 0.0
+    if count < settings.min_valid:
+        for k in range(k_count):
+            w[k] = 0.0
+        for j in range(n):
+            valid_out[j] = False
+            reg_out[j] = np.nan
+            chi_out[j] = 0.0
+        return np.inf, count, True
+    obj, iterations, _ = _solve_huber_nn(a, g, w, settings.lam, delta, settings.tol, settings.max_outer,
+                                         settings.max_add)
+    reg = np.empty(n)
+    _synthesize(a, w, reg)
+    for j in range(n):
+        if valid_out[j]:
+            reg_out[j] = reg[j]
+            r = g_row[j] - reg[j]
+            if r > delta:
+                chi_out[j] = r - delta
+            elif r < -delta:
+                chi_out[j] = r + delta
+            else:
+                chi_out[j] = 0.0
+        else:
+            reg_out[j] = np.nan
+            chi_out[j] = 0.0
+    return obj, count, iterations < settings.max_outer
+
+
+@numba.njit(**_SUMS)
+def _solve_at(ctx, i, neighbour, work):
+    """Solve row ``i`` on the grid ``N(neighbour.centroid, b, s)``,
+    warm-started from the neighbour's weights shifted onto it.  Writes the
+    row's outputs and ``work.w``, ``work.center``, ``work.gather``.  Returns
+    (status, other lattice index, band, cost per valid pixel, valid count,
+    negative when the solve stopped at its iteration limit): status 0 solved,
+    1 a pre-warped image is missing, 2 the grid left the table."""
+    prewarp, lattice, capture, out = ctx.prewarp, ctx.lattice, ctx.capture, ctx.out
+    table, other_lo, band_lo = prewarp.table, prewarp.other_lo, prewarp.band_lo
+    offsets, counts, step = lattice.offsets, lattice.counts, lattice.step
+    ty_dim, tx_dim, other_dim = lattice.ty_dim, lattice.tx_dim, lattice.other_dim
+    k_count, dims = offsets.shape
+    pose, prev_center, w_prev = neighbour.centroid, neighbour.center, neighbour.weights
+    w, center = work.w, work.center
+    slot, sy, sx = work.gather.slot, work.gather.shift_y, work.gather.shift_x
+    for d in range(dims):
+        center[d] = np.int64(np.round(pose[d] / step[d]))
+    cy = np.int64(np.round(center[ty_dim] * step[ty_dim])) if ty_dim >= 0 else 0
+    bnd = (i + prewarp.margin - cy) // prewarp.band
+    y = i + prewarp.margin - (bnd * prewarp.band - prewarp.pad)
+    b = bnd - band_lo
+    for k in range(k_count):
+        if ty_dim >= 0:
+            sy[k] = np.int64(np.round((center[ty_dim] + offsets[k, ty_dim]) * step[ty_dim]))
+        if tx_dim >= 0:
+            sx[k] = np.int64(np.round((center[tx_dim] + offsets[k, tx_dim]) * step[tx_dim]))
+        o = center[other_dim] + offsets[k, other_dim] - other_lo if other_dim >= 0 else 0
+        if o < 0 or o >= table.shape[0] or b < 0 or b >= table.shape[1]:
+            return 2, o + other_lo, bnd, 0.0, 0
+        if table[o, b] < 0:
+            return 1, o + other_lo, bnd, 0.0, 0
+        slot[k] = table[o, b]
+    # warm start: new[o] = old[o + (center - prev_center)]
+    for k in range(k_count):
+        w[k] = 0.0
+        src = 0
+        inside = True
+        for d in range(dims):
+            m = offsets[k, d] + counts[d] // 2 + center[d] - prev_center[d]
+            if m < 0 or m >= counts[d]:
+                inside = False
+                break
+            src = src * counts[d] + m
+        if inside:
+            w[k] = w_prev[src]
+    source = _Source(prewarp.stack, work.gather, y, prewarp.margin)
+    row = _Row(capture.dist[i], capture.dist_valid[i], out.registered[i], out.chi[i], out.valid[i])
+    objective, count, converged = _row_step(source, row, ctx.settings, w, work.a)
+    return 0, 0, 0, objective / max(count, 1), count if converged else -count
+
+
+@numba.njit(**_SUMS)
+def _centroid_of(w, center, offsets, step, out):
+    """``out`` (D,) = the centroid pose of weights ``w`` on the grid at
+    lattice ``center``; returns their sum."""
+    k_count, dims = offsets.shape
+    total = 0.0
+    for k in range(k_count):
+        total += w[k]
+    for d in range(dims):
+        acc = 0.0
+        for k in range(k_count):
+            acc += w[k] * offsets[k, d]
+        out[d] = (center[d] + acc / total) * step[d] if total > 0.0 else np.nan
+    return total
+
+
+@numba.njit(**_SUMS)
+def _propagate_rows(ctx, rows, neighbour, a, trust, anchor):
+    """Propagate the trajectory along ``rows`` (in order) from the solved row
+    ``neighbour`` (not changed), all in compiled code: per row, the grid
+    ``N(c, b, s)`` around the last solved row's centroid ``c``, its pre-warped
+    images (``ctx.prewarp.table[other index - other_lo, band - band_lo]``, -1
+    if missing), a warm start shifted from the last solved row,
+    :func:`_row_step`, the centroid.  ``a`` (K, N) is work space; ``trust``
+    (2 D + 2,) carries the path (last pose, velocity per row, its row, 1 when
+    the caller has just re-anchored it) across calls.
+
+    Returns (position reached in ``rows``, other-axis lattice index, band,
+    status): status 0 done, 1 a pre-warped image is missing (make it and call
+    again from that position), 2 the grid left the table (solve that row
+    another way), 3 the row's centroid jumped off the path (:func:`_jumps`;
+    ``anchor`` (2, D) holds it and the path's prediction): re-anchor the path
+    on a block of rows and call again from that position.
+    """
+    lattice, out = ctx.lattice, ctx.out
+    offsets, step = lattice.offsets, lattice.step
+    k_count, dims = offsets.shape
+    work = _Work(a, np.empty(k_count), np.empty(dims, np.int64),
+                 _Gather(np.empty(k_count, np.int64), np.zeros(k_count, np.int64), np.zeros(k_count, np.int64)))
+    w, center = work.w, work.center
+    c_own, predicted = np.empty(dims), np.empty(dims)
+    prev = _Neighbour(neighbour.centroid.copy(), neighbour.center.copy(), neighbour.weights.copy())
+    for pos in range(rows.shape[0]):
+        i = rows[pos]
+        if not ctx.capture.informative[i]:
+            out.row_state[i] = 2
+            continue
+        status, o, bnd, cost, count = _solve_at(ctx, i, prev, work)
+        if status != 0:
+            return pos, o, bnd, status
+        total = _centroid_of(w, center, offsets, step, c_own)
+        for k in range(k_count):
+            out.weights[i, k] = w[k]
+        for d in range(dims):
+            out.centers[i, d] = center[d]
+        out.row_gain[i] = total
+        if total <= 0.0 or count <= 0:  # nothing fitted, or unconverged: failed
+            out.row_state[i] = 3
+            continue
+        if trust[2 * dims + 1] == 0.0 and _jumps(c_own, i, lattice.px_per_unit, trust, predicted):
+            anchor[0] = c_own
+            anchor[1] = predicted
+            return pos, 0, 0, 3  # off the path: the caller re-anchors on a block of rows
+        _follow(c_own, i, trust)
+        for d in range(dims):
+            prev.centroid[d] = c_own[d]
+            out.trajectory[i, d] = c_own[d]
+        out.row_state[i] = 1
+        prev.center[:] = center
+        prev.weights[:] = w
+    return rows.shape[0], 0, 0, 0
+
+
+# ----------------------------------------------------------------------- the path
+
+
+@numba.njit(**_SUMS)
+def _jumps(centroid, row, px_per_unit, trust, predicted):
+    """Whether ``centroid`` of ``row`` lands more than :data:`DRIFT_PX` (plus
+    :data:`DRIFT_PX_PER_ROW` per row since) from the path's prediction,
+    written to ``predicted``.  ``trust`` (2 D + 2,) = (last pose (D), its
+    velocity per row (D), its row, a re-anchor flag)."""
+    dims = centroid.shape[0]
+    gap = row - trust[2 * dims]
+    jump = 0.0
+    for d in range(dims):
+        predicted[d] = trust[d] + trust[dims + d] * gap
+        jump = max(jump, abs(centroid[d] - predicted[d]) * px_per_unit[d])
+    return jump > DRIFT_PX + DRIFT_PX_PER_ROW * (abs(gap) - 1)
+
+
+@numba.njit(**_SUMS)
+def _follow(centroid, row, trust):
+    """The trusted path moves on to ``centroid`` at ``row``; its velocity is a
+    slow average of its steps."""
+    dims = centroid.shape[0]
+    gap = row - trust[2 * dims]
+    if gap != 0:
+        for d in range(dims):
+            trust[dims + d] = 0.8 * trust[dims + d] + 0.2 * (centroid[d] - trust[d]) / gap
+    for d in range(dims):
+        trust[d] = centroid[d]
+    trust[2 * dims] = row
+    trust[2 * dims + 1] = 0.0
+
+
+def _trust_state(centroid, row):
+    """The initial ``trust`` of :func:`_jumps`: the path at ``row``, at rest."""
+    dims = len(centroid)
+    return np.concatenate([np.asarray(centroid, np.float64), np.zeros(dims), [float(row), 0.0]])

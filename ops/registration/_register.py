@@ -1,0 +1,282 @@
+"""Per-row registration of a distorted capture against a reference (METHOD.md section 3).
+
+The trajectory starts at an informative block of rows near the middle of the
+capture (:mod:`ops.registration._start`), then propagates outwards row by row
+(:mod:`ops.registration._propagate`), each row searching ``N(c, b, s)`` around the centroid
+of its solved neighbour and warm-started from the neighbour's weights.
+Homogeneous rows are not trusted for the trajectory: their centroid is
+interpolated and they are solved afterwards around it.  A gain slope along the
+rows is divided out and the rows solved again when it matters (:mod:`ops.registration._gain`).
+"""
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .._camera import POSE_AXES, Camera
+from .._errors import ParameterError
+from ._gain import GAIN_SLOPE_RESOLVE, _column_gain_guess, _fold_gain, _gain_slope
+from .._oracle import optimal_chi
+from ._params import RegistrationParams
+from ._propagate import _Propagation, _shift_weights
+from ._rowproblem import _centroid, _RowProblem, _shift_margin, _Solver
+from ._rowsolve import _synthesize
+from ._slow import estimate_slow, slow_from_trajectory
+from ._start import _adapted_half_width, _choose_start, _coarse_search, _row_energy, _start, _start_row
+
+__all__ = ["Registration", "register"]
+
+
+@dataclass
+class Registration:
+    """Result of :func:`register` for a distorted window of shape (H, W).
+
+    Attributes
+    ----------
+    registered : ndarray, shape (H, W), float32
+        The reference warped and blurred to match the capture (``F_i w_i``);
+        NaN where a pose sampled outside the reference.
+    chi : ndarray, shape (H, W), float32
+        Signed change term of eq. 13 (0 where invalid).
+    valid : ndarray, shape (H, W), bool
+        Pixels whose every pose sampled valid reference data.
+    trajectory : ndarray, shape (H, D), float64
+        Per-row centroid pose over ``axes`` in global pose coordinates (the
+        row axes, then the slow ones: zero where no slow part was found).
+    row_gain : ndarray, shape (H,)
+        ``||w_i||_1`` per row (the illumination gain seen by that row).
+    row_weights : dict
+        Row -> (poses (n, D) over ``axes`` without the slow ones, weights (n,)):
+        the nonzero weights of every row's final solve, on the capture
+        divided by ``column_gain`` (what the depth-layer step re-renders).
+    column_gain : ndarray, shape (W,), or None
+        The gain along the rows folded into ``registered`` (None: none).
+    row_state : ndarray, shape (H,), uint8
+        1 solved, 2 homogeneous (centroid interpolated), 3 failed (no fit, or
+        the solve stopped at ``params.max_outer`` iterations before
+        converging; centroid interpolated).
+    axes : tuple of str
+    timings : dict
+    """
+
+    registered: np.ndarray
+    chi: np.ndarray
+    valid: np.ndarray
+    trajectory: np.ndarray
+    row_gain: np.ndarray
+    row_state: np.ndarray
+    axes: tuple
+    timings: dict = field(default_factory=dict)
+    row_weights: dict = field(default_factory=dict)
+    column_gain: np.ndarray | None = None
+    slow: object = None
+
+    @property
+    def gain(self):
+        """Illumination gain of the window: median ``||w_i||_1`` of solved rows."""
+        good = self.row_state == 1
+        return float(np.median(self.row_gain[good])) if good.any() else float("nan")
+
+
+def register(reference, distorted, *, camera=None, params=None, reference_origin_yx=(0, 0),
+             distorted_origin_yx=(0, 0), reference_valid=None, distorted_valid=None, prior=None, slow="auto"):
+    """Register a distorted capture against a reference, row by row (eq. 13).
+
+    Parameters
+    ----------
+    reference : ndarray, shape (Hr, Wr), float32 in [0, 1]
+        Reference window (may be larger than the distorted one: a halo); NaN
+        marks nodata, as ``reference_valid`` False does.
+    distorted : ndarray, shape (H, W), float32 in [0, 1]
+        Captured window.
+    camera : Camera, optional
+        Intrinsics of the *whole* image, default that of ``distorted``'s shape.
+    params : RegistrationParams, optional
+    reference_origin_yx, distorted_origin_yx : tuple of int
+        Position of each window's pixel (0, 0) in the whole image.
+    reference_valid, distorted_valid : ndarray of bool, optional
+        False at nodata pixels.
+    prior : ndarray, shape (H, D), optional
+        A trajectory over ``params.trajectory_axes`` to search around instead of
+        starting from the middle: every row searches ``N(prior_i, b, s)`` with
+        the prior's slow part (used to re-solve a tile around its neighbours'
+        path).
+    slow : "auto", SlowPath or None
+        The slow out-of-plane part of the path (``params.slow_axes``): "auto"
+        estimates it from these windows (:func:`estimate_slow`); a
+        :class:`SlowPath` (rows of ``distorted``) found on a wider view, such
+        as the whole image at a coarser scale, is used as it is; None: no slow
+        part.  Ignored with a ``prior``, which carries its own.
+
+    Returns
+    -------
+    Registration
+    """
+    camera = camera or Camera.for_shape(distorted.shape)
+    params = (params or RegistrationParams()).resolved(camera)
+    ref = np.array(reference, dtype=np.float32)
+    if reference_valid is not None:
+        ref[~np.asarray(reference_valid, bool)] = np.nan
+    dist = np.asarray(distorted, dtype=np.float32)
+    dvalid = np.ones(dist.shape, bool) if distorted_valid is None else np.asarray(distorted_valid, bool)
+    if prior is not None:
+        prior = np.asarray(prior, dtype=np.float64)
+        expected = (dist.shape[0], len(params.trajectory_axes))
+        if prior.shape != expected:
+            raise ParameterError(f"prior: expected shape {expected}, got {prior.shape}")
+        slow = slow_from_trajectory(prior, params.trajectory_axes)
+        prior = prior[:, :len(params.axes)]
+    elif not params.slow_axes:
+        slow = None
+    elif isinstance(slow, str):
+        if slow != "auto":
+            raise ParameterError(f"slow: expected 'auto', a SlowPath or None, got {slow!r}")
+        slow = estimate_slow(ref, dist, dvalid, camera=camera, reference_origin_yx=reference_origin_yx,
+                             distorted_origin_yx=distorted_origin_yx, axes=params.slow_axes,
+                             limit=2.0 * params.slow_search)
+    elif slow is not None and slow.rotation.shape[0] != dist.shape[0]:
+        raise ParameterError(f"slow: expected a path of {dist.shape[0]} rows, got {slow.rotation.shape[0]}")
+    args = (camera, params, reference_origin_yx, distorted_origin_yx, prior, slow)
+    # eq. 13 has one gain per row: a gain changing along the rows by more than a
+    # few per cent biases the poses, so a slope fitted to the registration is
+    # divided out of the capture and the rows are solved again (at most twice)
+    factor, scaled = None, dist
+    timings = {"coarse_search_s": 0.0, "rows_s": 0.0}
+    for attempt in range(3):
+        out, delta, spent = _solve_rows(ref, scaled, dvalid, *args)
+        timings = {k: timings[k] + spent[k] for k in timings}
+        more = _gain_slope(out, scaled, delta) if params.gain_slope else None
+        if more is None:
+            break
+        resolve = np.abs(more - 1.0).max() > GAIN_SLOPE_RESOLVE
+        if resolve and attempt == 0:
+            # a fit after a biased solve falls short of the slope; column-block
+            # brightness is the better first estimate when it agrees and is larger
+            guess = _column_gain_guess(ref, dist, dvalid, reference_origin_yx, distorted_origin_yx)
+            if guess is not None and (guess[-1] - guess[0]) / (more[-1] - more[0]) > 1.0:
+                more = guess
+        factor = more if factor is None else factor * more
+        if not resolve:
+            break
+        scaled = dist / factor
+    if factor is not None:
+        _fold_gain(out, dist, factor, delta)
+    trajectory = np.concatenate([out.trajectory, _slow_columns(slow, params.slow_axes, dist.shape[0])], axis=1)
+    return Registration(out.registered, out.chi, out.valid, trajectory, out.row_gain, out.row_state,
+                        params.trajectory_axes, timings, out.weights, factor, slow)
+
+
+def _slow_columns(slow, axes, height):
+    """The slow axes' columns (H, len(axes)) of the trajectory (zero without a slow part)."""
+    out = np.zeros((height, len(axes)))
+    if slow is not None:
+        pose6 = slow.pose6(np.arange(height))
+        for q, a in enumerate(axes):
+            out[:, q] = pose6[:, POSE_AXES.index(a)]
+    return out
+
+
+def _solve_rows(ref, dist, dvalid, camera, params, reference_origin_yx, distorted_origin_yx, prior, slow):
+    """Every row of ``dist`` against ``ref`` (eq. 13): outputs, the Huber delta, timings."""
+    row_pad = int(np.ceil(3 * max([params.half_width[d] for d, a in enumerate(params.axes) if a == "ty"] + [0])))
+    problem = _RowProblem(ref, dist, dvalid, camera, reference_origin_yx, distorted_origin_yx, params.axes,
+                          params.step, _shift_margin(params, prior), row_pad + 4, slow)
+    solver = _Solver(problem, params)
+    t0 = time.perf_counter()
+    height, width = dist.shape
+    energy = _row_energy(dist, dvalid)
+    informative = energy >= params.homogeneous * np.median(energy[energy > 0]) if (energy > 0).any() else energy > 0
+    out = _Outputs(height, width, len(params.axes))
+    mid = _start_row(informative, height)
+    half_band = int(max(16, min(48, height // 6)))
+    band = np.arange(max(0, mid - half_band), min(height, mid + half_band))
+    candidates = _coarse_search(problem, params, band) if prior is None else None
+    t1 = time.perf_counter()
+    if prior is not None:
+        _register_prior(solver, prior, informative, out)
+    elif params.shutter == "global":
+        _register_global(solver, candidates, informative, out)
+    else:
+        _register_rolling(solver, candidates, informative, mid, out)
+    return out, solver.delta, {"coarse_search_s": t1 - t0, "rows_s": time.perf_counter() - t1}
+
+
+class _Outputs:
+    def __init__(self, height, width, dims):
+        self.registered = np.full((height, width), np.nan, dtype=np.float32)
+        self.chi = np.zeros((height, width), dtype=np.float32)
+        self.valid = np.zeros((height, width), dtype=bool)
+        self.trajectory = np.full((height, dims), np.nan)
+        self.row_gain = np.zeros(height)
+        self.row_state = np.zeros(height, dtype=np.uint8)
+        self.weights = {}  # row -> (poses, weights) of its final solve, nonzero weights only
+
+    def keep_weights(self, row, poses, w):
+        keep = w > 0
+        self.weights[row] = (poses[keep], w[keep])
+
+    def store(self, row, w, a, valid, g_row, delta):
+        n = g_row.shape[0]
+        reg = np.empty(n)
+        _synthesize(a, w, reg)
+        r = g_row - reg
+        chi = optimal_chi(r, lambda_chi=2 * delta)
+        self.registered[row] = np.where(valid, reg, np.nan)
+        self.chi[row] = np.where(valid, chi, 0.0)
+        self.valid[row] = valid
+        self.row_gain[row] = w.sum()
+
+
+def _register_rolling(solver, candidates, informative, mid, out):
+    """Start near the middle, propagate outwards row by row."""
+    space, center = _start(solver, candidates, informative, mid)
+    run = _Propagation(solver, space, out)
+    run.from_row(mid, center, informative)
+    run.finish()
+    offsets = run.space.offsets()
+    for i, (lattice, w) in run.weights.items():
+        out.keep_weights(i, run.space.lattice_poses(np.asarray(lattice)[None, :] + offsets), w)
+
+
+def _register_global(solver, candidates, informative, out):
+    """One weight vector for every row (global shutter)."""
+    params = solver.params
+    height = out.row_gain.shape[0]
+    rows = np.nonzero(informative)[0]
+    if rows.size == 0:
+        rows = np.arange(height)
+    rows = rows[np.linspace(0, rows.size - 1, min(32, rows.size)).round().astype(int)]
+    rows = np.unique(rows)
+    center, spread = _choose_start(solver, candidates, rows)
+    space = params.space.widened(_adapted_half_width(params.space, spread))
+    index, poses, w, _, _ = solver.solve(rows, space, center)
+    converged = solver.last_converged
+    c = _centroid(poses, w)
+    keep = w > 0
+    index, poses, w = index[keep], poses[keep], w[keep]
+    for i in range(height):
+        a, g, valid = solver.problem.build([i], index, poses)
+        out.store(i, w, a, valid, solver.problem.dist[i].astype(np.float64), solver.delta)
+        out.keep_weights(i, poses, w)
+        out.trajectory[i] = c if c is not None else center
+        out.row_state[i] = (1 if converged else 3) if informative[i] else 2
+
+
+def _register_prior(solver, prior, informative, out):
+    """Every row around a given trajectory, warm-started from the row above."""
+    space = solver.params.space
+    counts = space.counts
+    previous = None
+    for i in range(prior.shape[0]):
+        w0 = None
+        if previous is not None:
+            w0 = _shift_weights(previous[1], counts, space.snap(prior[i]) - previous[0])
+        index, poses, w, a, valid = solver.solve([i], space, prior[i], w0)
+        out.store(i, w, a, valid, solver.problem.dist[i].astype(np.float64), solver.delta)
+        out.keep_weights(i, poses, w)
+        c = _centroid(poses, w)
+        good = informative[i] and c is not None and valid.any() and solver.last_converged
+        out.trajectory[i] = c if good else prior[i]
+        out.row_state[i] = 1 if good else (2 if not informative[i] else 3)
+        previous = (space.snap(prior[i]), w)

@@ -1,0 +1,193 @@
+"""Where the trajectory starts: an informative block of rows near the middle of
+the capture, candidate poses from a cheap correlation search over a wide pose
+range, and the candidate whose joint block solve of eq. 13 costs least."""
+
+import cv2
+import numpy as np
+
+from .._camera import full_poses
+from .._posespace import PoseSpace
+from ._rowproblem import _centroid, _spread
+from .._warp import _build_row
+
+__all__ = []
+
+
+def _row_energy(distorted, valid):
+    grad = np.abs(np.diff(distorted, axis=1))
+    ok = valid[:, 1:] & valid[:, :-1]
+    count = ok.sum(axis=1)
+    return np.where(count > 0, (grad * ok).sum(axis=1) / np.maximum(count, 1), 0.0)
+
+
+def _gradients(image, valid=None):
+    """Smoothed x and y derivatives, float32: correlating these rather than
+    intensities keeps large changed objects from dominating the score.  No-data
+    (NaN, or False in ``valid``: clipped highlights, the edge of the
+    reference) has no gradient, and neither has its border: filling it with
+    any value would draw edges that the correlation follows."""
+    ok = np.isfinite(image) if valid is None else valid & np.isfinite(image)
+    image = np.where(ok, image, float(np.median(image[ok])) if ok.any() else 0.0).astype(np.float32)
+    image = cv2.GaussianBlur(image, (0, 0), 1.0)
+    gx, gy = cv2.Sobel(image, cv2.CV_32F, 1, 0), cv2.Sobel(image, cv2.CV_32F, 0, 1)
+    if not ok.all():
+        near = cv2.dilate((~ok).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        gx[near], gy[near] = 0.0, 0.0
+    return gx, gy
+
+
+def _coarse_search(problem, params, rows, count=4):
+    """Candidate start poses of a band of rows, best first: for each in-plane
+    rotation on a coarse grid, the two best translations by normalised
+    cross-correlation of image gradients (invariant to gain, robust to changed
+    objects).  Returns the ``count`` best distinct ones and, per axis, how far
+    the truth may lie from a candidate (half the coarse spacing)."""
+    axes = params.axes
+    search = dict(zip(axes, params.search))
+    step = dict(zip(axes, params.step))
+    margin_x = int(np.ceil(search.get("tx", 0.0))) + 1
+    margin_y = int(np.ceil(search.get("ty", 0.0))) + 1
+    r0, r1 = rows[0], rows[-1] + 1
+    width = problem.width
+    uncertainty = np.where(np.isin(axes, ("tx", "ty")), 1.0, 0.0)
+    if width - 2 * margin_x < 16:
+        return [np.zeros(len(axes))], uncertainty
+    pad = 4
+    lo, hi = max(r0 - pad, 0), min(r1 + pad, problem.dist.shape[0])
+    templates = [t[r0 - lo:t.shape[0] - (hi - r1), margin_x:width - margin_x].copy()
+                 for t in _gradients(problem.dist[lo:hi], problem.dist_valid[lo:hi])]
+    if min(t.std() for t in templates) == 0:
+        return [np.zeros(len(axes))], uncertainty
+    rz_values = [0.0]
+    if "rz" in axes and search["rz"] > 0:
+        # candidates close enough that the translation search bridges them at
+        # the band's farthest pixel, and that the band tilts < 2 px between them
+        corner = np.hypot(np.array([problem.dx, problem.dx + width]) - problem.cx,
+                          np.array([r0, r1]) + problem.dy - problem.cy).max()
+        bridge = min(2.0 / max(width / 2.0, 1.0), max(min(margin_x, margin_y) - 1, 1) / 2.0 / max(corner, 1.0))
+        coarse = max(np.degrees(bridge), step["rz"])
+        n = int(np.ceil(search["rz"] / coarse))
+        rz_values = list(np.linspace(-search["rz"], search["rz"], 2 * n + 1))
+        uncertainty[axes.index("rz")] = search["rz"] / (2 * n) if n else 0.0
+    band = np.arange(r0 - margin_y, r1 + margin_y)
+    peaks = []
+    buf = np.empty((1, width), dtype=np.float32)
+    for rz in rz_values:
+        pose = full_poses(np.array([[rz]]), ("rz",))
+        img = np.empty((band.size, width), dtype=np.float32)
+        seen = np.empty((band.size, width), dtype=bool)
+        for q, i in enumerate(band):
+            seen[q] = _build_row(problem.ref, float(i + problem.dy), float(problem.dx), problem.with_slow(pose, i),
+                                 problem.focal, problem.cx, problem.cy, buf) != 0
+            img[q] = buf[0]
+        score = sum(cv2.matchTemplate(i, t, cv2.TM_CCOEFF_NORMED) for i, t in zip(_gradients(img, seen), templates))
+        for peak, (x, y) in _local_maxima(score, 2):
+            peaks.append((peak, margin_x - x, margin_y - y, rz))
+    peaks.sort(key=lambda p: -p[0])
+    out = []
+    for _, tx, ty, rz in peaks:
+        values = {"tx": tx, "ty": ty, "rz": rz}
+        pose = np.array([values.get(a, 0.0) for a in axes], dtype=np.float64)
+        if all(np.abs(pose - q).max() > 1.5 for q in out):
+            out.append(pose)
+        if len(out) == count:
+            break
+    return out or [np.zeros(len(axes))], uncertainty
+
+
+def _local_maxima(score, count, radius=3):
+    """The ``count`` highest local maxima of a score map: (value, (x, y))."""
+    out = []
+    score = score.copy()
+    for _ in range(count):
+        _, peak, _, loc = cv2.minMaxLoc(score)
+        if not np.isfinite(peak):
+            break
+        out.append((peak, loc))
+        x, y = loc
+        score[max(y - radius, 0):y + radius + 1, max(x - radius, 0):x + radius + 1] = -np.inf
+    return out
+
+
+def _start_row(informative, height):
+    """The informative row nearest the middle."""
+    rows = np.nonzero(informative)[0]
+    if rows.size == 0:
+        return height // 2
+    return int(rows[np.argmin(np.abs(rows - height // 2))])
+
+
+def _block_rows(informative, mid, count, height):
+    rows = np.nonzero(informative)[0]
+    if rows.size == 0:
+        rows = np.arange(height)
+    # the nearest rows: a rolling shutter moves between rows, so the block is
+    # kept short in time
+    return np.sort(rows[np.argsort(np.abs(rows - mid), kind="stable")][:count])
+
+
+def _refine_start(solver, center, rows, uncertainty, iterations=2, stride=None):
+    """Joint solve of a block of rows around a coarse pose (a grid wide enough
+    for the coarse search's spacing, lattice steps ``stride`` times the
+    parameters' steps, default :meth:`_RowProblem.rotation_stride`); returns the
+    block's centroid, the blur extent per axis and the cost."""
+    params = solver.params
+    steps = np.asarray(params.step) * (solver.problem.rotation_stride() if stride is None else stride)
+    coarse_hw = np.maximum(np.maximum(np.asarray(params.half_width) + steps, 4 * steps),
+                           np.ceil(np.asarray(uncertainty) / steps) * steps + 2 * steps)
+    space = PoseSpace(params.axes, tuple(coarse_hw), tuple(steps))
+    for _ in range(iterations):
+        _, poses, w, _, _ = solver.solve(rows, space, center)
+        c = _centroid(poses, w)
+        if c is None:
+            return center, np.zeros_like(center), np.inf
+        center = c
+    return center, _spread(poses, w, center), solver.last_cost
+
+
+def _choose_start(solver, start, rows):
+    """The start pose among the correlation candidates whose block solve of
+    eq. 13 costs least: correlation proposes, the model decides (periodic
+    textures such as ploughed fields give several correlation peaks).
+    ``start`` is (candidates, uncertainty per axis)."""
+    candidates, uncertainty = start
+    # where rz steps move the block's pixels by a pixel or less, candidates
+    # compete on a lattice twice as coarse in rz (half the poses of the widest
+    # block systems), and the winner is refined on the full lattice around a
+    # pose then known to within one coarse step
+    coarse = solver.problem.rotation_stride(2)
+    coarsened = coarse != solver.problem.rotation_stride()  # per axis
+    best = None
+    for center in candidates:
+        refined = _refine_start(solver, np.asarray(center, dtype=np.float64), rows, uncertainty, iterations=1,
+                                stride=coarse)
+        if best is None or refined[2] < best[2]:
+            best = refined
+    if (len(candidates) > 1 or coarsened.any()) and np.isfinite(best[2]):
+        known = np.where(coarsened, np.asarray(solver.params.step) * coarse, uncertainty)
+        best = _refine_start(solver, best[0], rows, known, iterations=1)
+    return best[0], best[1]
+
+
+def _adapted_half_width(space, spread):
+    """Half-widths that cover a blur of extent ``spread`` (per axis) plus one step,
+    never narrower than ``space``'s."""
+    steps = np.asarray(space.step)
+    need = np.ceil(spread / steps - 1e-9) * steps + steps
+    return tuple(np.maximum(space.half_width, need))
+
+
+def _start(solver, candidates, informative, mid):
+    """Start pose of the middle block and the row neighbourhood, widened to the
+    blur extent of the middle row."""
+    params = solver.params
+    block = _block_rows(informative, mid, params.block_rows, len(informative))
+    center, _ = _choose_start(solver, candidates, block)
+    space = params.space
+    if params.adapt:
+        wide = space.widened(tuple(np.asarray(space.half_width) + np.asarray(space.step)))
+        _, poses, w, _, _ = solver.solve([mid], wide, center)
+        c = _centroid(poses, w)
+        if c is not None:
+            space = space.widened(_adapted_half_width(space, _spread(poses, w, c)))
+    return space, center

@@ -1,0 +1,1 @@
+"""Synthetic scenes and pairs with known truth (trajectory, changes, gain, depth)."""

@@ -1,0 +1,419 @@
+"""``rsmb survey``: a night of georeferenced captures against a reference mosaic.
+
+DESIGN.md, "Survey archives" (a contract: scripts read it).  The captures the
+glob finds are paired with the reference set by footprint and run through
+:func:`detect`, several at once on one runner (one executor or cluster for the
+night, so the cores stay busy while a capture finishes its tail; a capture's
+products and report are written outside the ``parallel`` captures being
+detected, so the next capture's tasks run meanwhile).  Per capture,
+under ``OUT_DIR/<path relative to the glob's fixed prefix, no suffix>/``:
+``changes.zarr``, ``changes.gpkg`` (layer ``changes``), the masks and score as
+Cloud-Optimised GeoTIFFs, ``thumbnail.png`` and ``report/``.  A folder is built
+under ``OUT_DIR/.partial/`` and renamed into place, so it appears complete or
+not at all.  The ledger (:mod:`pipeline.archive._ledger`), written by this driver only,
+decides what runs: a capture done with the same key is skipped, a failed one
+retried, a changed one redone.  One bad capture never stops the night: it is
+``failed`` with a one-line reason and the others finish.
+"""
+
+import dataclasses
+import datetime as _dt
+import glob
+import json
+import logging
+import os
+import shutil
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rsmb import ops
+from rsmb import tiles
+from rsmb.ops import InputError, ParameterError, RSMBError
+from rsmb.ops._errors import one_line
+
+from ..detection._detect import detect
+from ..detection._plan import VERSION, DetectConfig
+from ._ledger import LEDGER_NAME, Ledger, RunKey
+from ..detection._outputs import write_products
+from .._scheduler import check_scheduler, open_runner
+
+__all__ = ["SurveyResult", "CaptureResult", "survey", "find_captures", "check_output"]
+
+log = logging.getLogger("rsmb")
+
+PARTIAL = ".partial"
+#: Default tile side of a survey: a capture of about a megapixel is one tile,
+#: so it pays the per-tile start once; the night's concurrency, not the tiles
+#: of one capture, keeps the cores busy.
+SURVEY_TILE = 1024
+_WILDCARDS = set("*?[")
+
+
+@dataclass(frozen=True)
+class CaptureResult:
+    """One capture of a night (an entry of ``--json``'s ``captures``).
+
+    Attributes
+    ----------
+    capture : str
+        The capture's path.
+    status : {"done", "skipped", "failed", "would run", "would skip"}
+        The last two with ``dry_run``.
+    reason : str
+        Why it ran (new, retried, what changed), was skipped or failed (one
+        line).
+    reference : list of str
+        The reference files read for it (under its footprint).
+    output : str or None
+        Its folder.
+    vectors : str or None
+        Its ``changes.gpkg``.
+    changes : int or None
+        Changes (polygons) found.
+    changed_m2 : float or None
+        Their area, square metres.
+    seconds : float
+    """
+
+    capture: str
+    status: str
+    reason: str
+    reference: list = field(default_factory=list)
+    output: str | None = None
+    vectors: str | None = None
+    changes: int | None = None
+    changed_m2: float | None = None
+    seconds: float = 0.0
+
+
+@dataclass(frozen=True)
+class SurveyResult:
+    """A night: its captures and counts (the ``--json`` output), and where its
+    summary and index were written."""
+
+    captures: list
+    done: int
+    skipped: int
+    failed: int
+    night: str | None = None
+    summary: str | None = None
+    index: str | None = None
+
+    def as_dict(self):
+        """The DESIGN.md ``--json`` shape."""
+        return {"captures": [tiles.jsonable(c) for c in self.captures], "done": self.done,
+                "skipped": self.skipped, "failed": self.failed}
+
+
+def _fixed_prefix(pattern):
+    """The leading directories of a glob pattern that hold no wildcard."""
+    parts = Path(pattern).parts
+    fixed = []
+    for part in parts[:-1]:
+        if _WILDCARDS & set(part):
+            break
+        fixed.append(part)
+    return Path(*fixed) if fixed else Path(".")
+
+
+def find_captures(pattern, out_dir):
+    """Files the glob ``pattern`` finds (``**`` recurses), sorted, outside
+    ``out_dir``: a list of (absolute path, folder name relative to the
+    pattern's fixed prefix, without suffix)."""
+    prefix = _fixed_prefix(pattern).absolute()
+    out = Path(out_dir).absolute()
+    found = []
+    for name in sorted(glob.glob(os.fspath(pattern), recursive=True)):
+        path = Path(name).absolute()
+        if not path.is_file() or out in path.parents:
+            continue
+        found.append((path, path.relative_to(prefix).with_suffix("")))
+    return found
+
+
+def _collisions(found):
+    """Captures whose folder name an earlier capture already has (a.tif and
+    a.png in one directory): capture -> the capture it collides with."""
+    first, out = {}, {}
+    for capture, name in found:
+        if name in first:
+            out[capture] = first[name]
+        else:
+            first[name] = capture
+    return out
+
+
+def _check_invocation(references, captures, out_dir, scheduler):
+    """Bad invocations (exit 2) before anything runs or is written: no glob,
+    references that are missing, unreadable or not georeferenced, an output
+    folder that cannot be written or that holds other things than a survey (a
+    folder is a survey's when it has a ledger), a bad scheduler."""
+    if not os.fspath(captures).strip():
+        raise ParameterError(f"captures: expected a glob pattern of the night's captures, got {captures!r}")
+    if not references:
+        raise InputError("REFERENCE: expected at least one georeferenced reference file")
+    for path in references:
+        shape, geo = tiles.probe_header(path)
+        if not tiles.is_georeferenced(geo):
+            raise InputError(f"{path}: the reference is not georeferenced (a survey pairs captures by footprint)")
+    check_output(out_dir)
+    check_scheduler(scheduler)
+
+
+def check_output(out_dir, *, option="-o"):
+    """Raise :class:`InputError` unless ``out_dir`` can be a survey's folder:
+    new, empty, or an earlier survey's (it holds ``ledger.sqlite``), in a
+    place that can be written.  A folder of other files is refused: a survey
+    never writes its captures' folders among someone else's files.  The
+    message calls the folder ``option``."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: {option} must be a directory, this is a file")
+    if out.is_dir() and not (out / LEDGER_NAME).exists() and any(out.iterdir()):
+        raise InputError(f"{out}: {option} is a folder of other files, not a survey's (no {LEDGER_NAME}); give a "
+                         f"new or empty folder, or the folder of earlier nights")
+    tiles.check_writable(out / LEDGER_NAME)
+
+
+def _parameters(config, shape=None):
+    """The parameters of a capture's ledger key: ``config`` as detect runs it
+    on a capture of ``shape`` ('auto' steps and half-widths resolved for its
+    camera), so that equal runs key alike however they were asked for
+    (:func:`survey`'s default config, the command's 'auto')."""
+    if shape is not None:
+        camera = ops.Camera.for_shape(shape, focal=config.focal)
+        config = dataclasses.replace(config, registration=config.registration.resolved(camera))
+    return tiles.jsonable({"config": config, "kernels": ops.KERNEL_VERSION})
+
+
+def survey(references, captures, out_dir, *, config=None, scheduler="threads", workers=None, parallel=None,
+           dry_run=False, worker_timeout=60.0, report=True):
+    """Run a night: every capture the glob ``captures`` finds, against the
+    georeferenced reference set ``references`` (DESIGN.md, "Survey archives").
+
+    Parameters
+    ----------
+    references : sequence of str or path-like
+        Georeferenced reference files (a mosaic: the first file with data wins).
+    captures : str
+        A glob pattern (``**`` recurses).
+    out_dir : str or path-like
+        The survey's folder: one folder per capture, ``ledger.sqlite``,
+        ``nights/<UTC time>.json`` and ``index.html``.  New, empty, or the
+        folder of earlier nights (:func:`check_output`).
+    config : DetectConfig, optional
+        Its ``tile`` defaults to :data:`SURVEY_TILE`.
+    scheduler, workers, worker_timeout
+        As for :func:`detect`; one runner serves the whole night.
+    parallel : int, optional
+        Captures detected at once; default one more than the cores of this
+        machine.  A capture's products and report (its own Python work) are
+        written outside that count, beside the next captures' detection, so
+        the workers always have tasks while captures finish.
+    dry_run : bool
+        Say what would run and why; write nothing.
+    report : bool
+        Write each capture's ``report/``.
+
+    Returns
+    -------
+    SurveyResult
+
+    Raises
+    ------
+    InputError, ParameterError
+        A bad invocation, before anything runs (a bad capture is not one: it
+        is ``failed`` in the result).
+    """
+    config = config or DetectConfig()
+    if config.tile is None:  # captures run side by side: one large tile each keeps the cores busy
+        config = dataclasses.replace(config, tile=SURVEY_TILE)
+    references = [os.path.abspath(r) for r in references]
+    out = Path(out_dir).absolute()
+    _check_invocation(references, captures, out, scheduler)
+    found = find_captures(captures, out)
+    night = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H-%M-%SZ")
+    log.info("survey: %d capture(s) found by %s, %d reference file(s)", len(found), captures, len(references))
+    reference_shas = [tiles.probe_image(r).sha256 for r in references]  # once per night
+    if dry_run:
+        return _dry_run(found, out, references, reference_shas, config)
+    out.mkdir(parents=True, exist_ok=True)
+    shutil.rmtree(out / PARTIAL, ignore_errors=True)  # folders a killed night left half-built
+    with Ledger(out / LEDGER_NAME) as ledger:
+        results = _night(ledger, found, out, references, reference_shas, night, config,
+                         dict(scheduler=scheduler, workers=workers, parallel=parallel,
+                              worker_timeout=worker_timeout, report=report))
+        result = SurveyResult(results, *(sum(r.status == s for r in results) for s in ("done", "skipped", "failed")),
+                              night=night)
+        summary = _write_night(out, result)
+        # the runner is closed: no task of a failed capture can still be writing its scratch
+        shutil.rmtree(out / PARTIAL, ignore_errors=True)
+        from ._survey_html import write_index
+
+        index = write_index(out, ledger.captures(), prefix=_fixed_prefix(captures).absolute())
+    return SurveyResult(result.captures, result.done, result.skipped, result.failed, night, str(summary), str(index))
+
+
+def _key(capture, references, reference_shas, config):
+    info = tiles.probe_image(capture)
+    return RunKey.build(info.sha256, reference_shas, references, _parameters(config, info.shape), VERSION)
+
+
+def _dry_run(found, out, references, reference_shas, config):
+    """What would run, and why: read-only (the ledger, if there is one)."""
+    ledger = Ledger(out / LEDGER_NAME, readonly=True) if (out / LEDGER_NAME).exists() else None
+    results = []
+    for capture, name in found:
+        try:
+            key = _key(capture, references, reference_shas, config)
+            decision = ledger.decide(str(capture), key) if ledger else None
+            action, reason = (decision.action, decision.reason) if decision else ("run", "new capture")
+            results.append(CaptureResult(str(capture), f"would {action}", reason, output=str(out / name)))
+        except RSMBError as exc:
+            results.append(CaptureResult(str(capture), "would run", f"and fail: {one_line(exc)}"))
+    if ledger:
+        ledger.close()
+    return SurveyResult(results, 0, sum(r.status == "would skip" for r in results), 0)
+
+
+def _night(ledger, found, out, references, reference_shas, night, config, run):
+    """Decide every capture, run those to run (:func:`_run_all`), record each
+    in the ledger as it ends.  Returns CaptureResults in the order found."""
+    results, todo = {}, []
+    collisions = _collisions(found)
+    for capture, name in found:
+        try:
+            key = _key(capture, references, reference_shas, config)
+        except RSMBError as exc:  # unreadable: the ledger still hears of it
+            key = RunKey.build("unreadable", reference_shas, references, _parameters(config), VERSION)
+            results[capture] = _fail(ledger, ledger.start(str(capture), key, night=night), capture, exc, 0.0)
+            continue
+        if capture in collisions:
+            exc = InputError(f"{capture}: its folder {name} is already {collisions[capture]}'s; rename one")
+            results[capture] = _fail(ledger, ledger.start(str(capture), key, night=night), capture, exc, 0.0)
+            continue
+        decision = ledger.decide(str(capture), key)
+        if decision.action == "skip":
+            previous = decision.previous.outputs
+            results[capture] = CaptureResult(str(capture), "skipped", decision.reason, previous.get("reference", []),
+                                             previous.get("output"), previous.get("vectors"),
+                                             previous.get("changes"), previous.get("changed_m2"))
+            continue
+        log.info("survey: %s: %s", name, decision.reason)
+        todo.append((capture, name, ledger.start(str(capture), key, night=night), decision.reason))
+    if todo:  # a night with nothing to run opens no scheduler (no cluster jobs, no connection)
+        results.update(_run_all(ledger, todo, out, references, config, run))
+    return [results[capture] for capture, _ in found]
+
+
+def _run_all(ledger, todo, out, references, config, run):
+    """Run the captures of ``todo`` (``parallel`` at once on one runner) and
+    record each in the ledger as it ends: capture -> CaptureResult."""
+    results, total = {}, len(todo)
+    cores = os.cpu_count() or 1
+    parallel = run["parallel"] or cores + 1
+    # a slot per capture being detected; the driver has threads to spare for
+    # captures writing their products and report meanwhile
+    slots = threading.Semaphore(parallel)
+    with open_runner(run["scheduler"], workers=run["workers"], shared=True, progress=False,
+                     worker_timeout=run["worker_timeout"]) as runner, \
+            ThreadPoolExecutor(parallel + cores + 1) as driver:
+        futures = {driver.submit(_run_capture, capture, name, out, references, config, runner, run["report"], slots):
+                   (capture, name, run_id, why) for capture, name, run_id, why in todo}
+        for count, future in enumerate(as_completed(futures), 1):
+            capture, name, run_id, why = futures[future]
+            try:
+                result = future.result()
+            except ops.RunError:
+                raise  # the night cannot go on (every worker gone): not one capture's fault
+            except Exception as exc:  # noqa: BLE001 - one bad capture never stops the night
+                results[capture] = _fail(ledger, run_id, capture, exc, None)
+                log.error("survey [%d/%d] %s: failed: %s", count, total, name, results[capture].reason)
+                continue
+            result = dataclasses.replace(result, reason=why)
+            ledger.finish(run_id, "done", why, tiles.jsonable(result))
+            results[capture] = result
+            log.info("survey [%d/%d] %s: done in %.1f s, %d change(s)", count, total, name, result.seconds,
+                     result.changes)
+    return results
+
+
+def _fail(ledger, run_id, capture, exc, seconds):
+    reason = one_line(exc) if isinstance(exc, RSMBError) else \
+        f"{type(exc).__name__}: {one_line(exc)}"
+    ledger.finish(run_id, "failed", reason)
+    return CaptureResult(str(capture), "failed", reason, seconds=seconds or 0.0)
+
+
+def _run_capture(capture, name, out, references, config, runner, report, slots):
+    """One capture, built aside and renamed into place: its store, products,
+    thumbnail and report.  Runs in a driver thread; its tasks on ``runner``;
+    its detection holds one of ``slots`` (a semaphore), its products and
+    report none.  A failure leaves nothing behind."""
+    start = time.perf_counter()
+    header = tiles.probe_header(capture)[1]
+    if not tiles.is_georeferenced(header):
+        raise InputError(f"{capture}: not georeferenced (a survey pairs captures with the reference by footprint)")
+    aside = out / PARTIAL / name
+    shutil.rmtree(aside, ignore_errors=True)
+    aside.mkdir(parents=True)
+    try:
+        folder = out / name
+        features, read = _build(capture, aside, folder, references, config, runner, report, slots)
+        _swap_into_place(aside, folder)
+    finally:
+        shutil.rmtree(aside, ignore_errors=True)
+    return CaptureResult(str(capture), "done", "", list(read), str(folder), str(folder / "changes.gpkg"),
+                         len(features), float(sum(f.area_m2 for f in features)), time.perf_counter() - start)
+
+
+def _build(capture, aside, folder, references, config, runner, report, slots):
+    """The capture's products in ``aside`` (to become ``folder``): returns its
+    change polygons and the reference files read.  The detection holds one of
+    ``slots`` (a semaphore)."""
+    store = aside / "changes.zarr"
+    with slots:
+        summary = detect(references, capture, store, config=config, runner=runner)
+    # the store records where it lives once the folder is in place
+    tiles.update_attrs(store, {"summary": {**summary.as_dict(), "output": str(folder / "changes.zarr")}})
+    group = tiles.open_result_store(store)
+    geo = tiles.GeoInfo.from_attrs(group.attrs.asdict())
+    write_products(store, aside, geo, geo)
+    features = tiles.change_polygons(group["change_mask"], group["change_score"], geo)
+    # dated by the capture, not the clock: a capture redone gives the same file
+    tiles.write_changes_gpkg(aside / "changes.gpkg", features, geo.crs,
+                             last_change=os.stat(capture).st_mtime)
+    from ._survey_html import write_thumbnail
+
+    write_thumbnail(group, aside / "thumbnail.png")
+    if report:
+        from ..report._report import write_report
+
+        write_report(store, aside / "report")
+    return features, group.attrs["pairing"].get("read", [])
+
+
+def _swap_into_place(aside, folder):
+    """``aside`` renamed to ``folder``; an earlier folder there (a capture
+    redone) is moved away first and deleted after."""
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    old = folder.with_name(folder.name + ".replaced")
+    shutil.rmtree(old, ignore_errors=True)
+    if folder.exists():
+        os.replace(folder, old)
+    os.replace(aside, folder)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _write_night(out, result):
+    """``OUT_DIR/nights/<night>.json``: the night's summary (as ``--json``)."""
+    nights = out / "nights"
+    nights.mkdir(exist_ok=True)
+    path = nights / f"{result.night}.json"
+    tmp = path.with_suffix(".json.partial")
+    tmp.write_text(json.dumps(result.as_dict(), indent=2))
+    os.replace(tmp, path)
+    return path

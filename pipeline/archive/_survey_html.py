@@ -1,0 +1,106 @@
+"""The pages of a survey: ``thumbnail.png`` per capture and ``OUT_DIR/index.html``.
+
+The index lists every capture the ledger has ever seen (its latest attempt):
+capture, status, reason, changes and their area, its thumbnail and a link to
+its report.  Links are relative and there is no script, so the page opens from
+disk without a server.  Layout rules: the table is as wide as the window and no
+wider (fixed columns; long paths and reasons wrap anywhere), a capture under
+the night's glob prefix is shown relative to it (the name the survey's log and
+folders use; its full path in the cell's tooltip), and a reason does not
+repeat the capture's path it starts with.
+"""
+
+import html
+import os
+from pathlib import Path
+
+from ..report._report_figures import block_reduce, overlay_rgb
+
+__all__ = ["write_index", "write_thumbnail"]
+
+THUMBNAIL = 256  # px, the longer side
+
+
+def write_thumbnail(group, path, *, side=THUMBNAIL):
+    """The change overlay (:func:`overlay_rgb`) of a detect store, reduced so
+    that its longer side is at most ``side`` pixels."""
+    from PIL import Image
+
+    h, w = group["change_mask"].shape
+    factor = max(1, -(-max(h, w) // side))
+    rgb = overlay_rgb(block_reduce(group["registered"], factor, "mean"),
+                      block_reduce(group["change_mask"], factor, "max"))
+    Image.fromarray(rgb, mode="RGB").save(path, compress_level=3)
+    return Path(path)
+
+
+_STYLE = """body{font-family:sans-serif;margin:1.5em;color:#222;overflow-wrap:anywhere}
+table{border-collapse:collapse;width:100%;table-layout:fixed}
+td,th{border:1px solid #ccc;padding:4px 8px;vertical-align:middle}th{background:#eee}
+td.num{text-align:right}.done{color:#161}.failed{color:#b00;font-weight:bold}.running{color:#a60}
+code{font-size:90%}img{display:block;max-width:100%;max-height:160px}"""
+#: (header, width) of the index's columns; the thumbnail column fits a 160-px thumbnail and its padding
+_COLUMNS = (("capture", "16%"), ("status", "6em"), ("reason", "auto"), ("changes", "6em"), ("changed m&sup2;", "7em"),
+            ("thumbnail", "178px"), ("report", "5em"), ("when (UTC)", "8em"))
+
+
+def _cell(value, numeric=False):
+    text = "" if value is None else (f"{value:,.1f}" if isinstance(value, float) else str(value))
+    return f"<td class='num'>{html.escape(text)}</td>" if numeric else f"<td>{html.escape(text)}</td>"
+
+
+def _shown(capture, prefix):
+    """A capture's path as the index shows it: relative to the night's glob
+    prefix when it lies under it, else whole."""
+    if prefix is not None and Path(prefix) in Path(capture).parents:
+        return Path(capture).relative_to(prefix).as_posix()
+    return capture
+
+
+def _reason(row):
+    """The reason without the capture's path it starts with (errors name their file)."""
+    return row.reason.removeprefix(f"{row.capture}: ")
+
+
+def _when(stamp):
+    """``2026-11-23T21:29:52.722Z`` -> ``2026-11-23 21:29:52``."""
+    return stamp.replace("T", " ")[:19] if stamp else None
+
+
+def _row(out, row, prefix):
+    outputs = row.outputs
+    folder = outputs.get("output")
+    link = lambda target: html.escape(os.path.relpath(target, out).replace(os.sep, "/"))  # noqa: E731
+    thumb = report = ""
+    if folder and Path(folder, "report", "index.html").is_file():
+        report = f"<a href='{link(Path(folder, 'report', 'index.html'))}'>report</a>"
+    if folder and Path(folder, "thumbnail.png").is_file():
+        image = f"<img src='{link(Path(folder, 'thumbnail.png'))}' alt='thumbnail'>"
+        thumb = f"<a href='{link(Path(folder, 'thumbnail.png'))}'>{image}</a>"
+    return (f"<tr><td title='{html.escape(row.capture)}'><code>{html.escape(_shown(row.capture, prefix))}</code></td>"
+            f"<td class='{html.escape(row.status)}'>{html.escape(row.status)}</td>{_cell(_reason(row))}"
+            f"{_cell(outputs.get('changes'), True)}{_cell(outputs.get('changed_m2'), True)}"
+            f"<td>{thumb}</td><td>{report}</td>{_cell(_when(row.finished or row.started))}</tr>")
+
+
+def write_index(out, rows, *, prefix=None):
+    """``out/index.html``: one row per capture of ``rows`` (the ledger's
+    latest attempts), written aside and renamed.  Captures under ``prefix``
+    (the night's glob prefix, a directory) are shown relative to it.  Returns
+    its path."""
+    out = Path(out)
+    counts = {s: sum(r.status == s for r in rows) for s in ("done", "failed", "running")}
+    body = "\n".join(_row(out, r, prefix) for r in rows)
+    columns = "".join(f"<col style='width:{width}'>" for _, width in _COLUMNS)
+    headers = "".join(f"<th>{name}</th>" for name, _ in _COLUMNS)
+    under = f" Captures under <code>{html.escape(str(prefix))}/</code> are named relative to it." if prefix else ""
+    page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>rsmb survey: {html.escape(out.name)}"
+            f"</title><style>{_STYLE}</style></head><body><h1>rsmb survey: {html.escape(str(out))}</h1>"
+            f"<p>{len(rows)} captures: {counts['done']} done, {counts['failed']} failed"
+            f"{', %d interrupted' % counts['running'] if counts['running'] else ''}.{under}</p>"
+            f"<table><colgroup>{columns}</colgroup><tr>{headers}</tr>\n{body}\n</table></body></html>\n")
+    path = out / "index.html"
+    tmp = out / ".index.html.partial"
+    tmp.write_text(page, encoding="utf-8")
+    os.replace(tmp, path)
+    return path

@@ -1,0 +1,351 @@
+"""``rsmb detect``: tiled RSMB registration and change detection of one capture.
+
+Registration runs one task per tile.  The stages that mostly move data (ingest,
+labelling, masks) run one task per block of tiles, about 1024 px on a side (see
+:func:`_block_grid`): per zarr call and per window edge they cost the same
+whatever the tile, so small tiles would pay them many times over.
+
+:func:`detect` reads as its stages:
+
+1. :func:`._plan._plan`: inputs probed, grid and run key derived (nothing
+   written; the configuration, summary and defaults live in ``_plan.py``);
+2. :func:`_ingest`: both images into the store, chunked by tile, one task per
+   block (a tile task reads its core and halo: at most nine chunks);
+3. :func:`_register_tiles`: every tile (resumable: finished tiles are marked in
+   the store);
+4. :func:`_fuse_paths`: the per-row trajectories of tiles sharing rows fused,
+   tiles whose path disagrees with their band's re-solved around the others';
+5. :func:`_change_masks`: one change threshold for the whole image from summed
+   tile histograms; change candidates labelled per block (its score read with
+   the margin the local half-maximum test needs), labels merged across seams,
+   components kept that reach the threshold and the minimum area; per block,
+   the mask of its window from the kept labels, small holes filled, its core
+   written, and its changes in the reference grid from the fused trajectory;
+6. :func:`_finish`: attributes, an atomic rename of the store, GeoTIFFs on
+   request.
+"""
+
+import contextlib
+import dataclasses
+import functools
+import logging
+import os
+import time
+
+import numpy as np
+
+from rsmb import ops
+from rsmb import tiles
+from rsmb.ops import InputError
+from rsmb.ops.depth._layers import MIN_COVERED, MIN_EXPLAINED
+
+from . import _tasks
+from ._tasks import _specs, _tile_done, _tile_results
+from ._fuse import _agreement, _fuse, _outliers
+from ._outputs import _check_outputs, _finished, write_products
+from ._overview import slow_stage
+from ._plan import VERSION, DetectConfig, DetectResult, _plan
+from .._scheduler import check_scheduler, open_runner
+
+__all__ = ["detect"]
+
+log = logging.getLogger("rsmb")
+
+
+def _expected_cost(tile, camera):
+    """Relative registration cost of a tile: its area times the distance of its
+    farthest pixel from the principal point (rotation moves far pixels more, so
+    their neighbourhoods and blur are larger: corner tiles run longer than
+    central ones).  The longest tiles are started first."""
+    (r0, r1), (c0, c1) = [(s.start, s.stop) for s in tile.core]
+    far = np.hypot(max(abs(c0 - camera.center_xy[0]), abs(c1 - camera.center_xy[0])),
+                   max(abs(r0 - camera.center_xy[1]), abs(r1 - camera.center_xy[1])))
+    return (r1 - r0) * (c1 - c0) * far
+
+
+def _ingest(runner, group, run, plan, timings):
+    """Stage 2: both inputs into the store, one task per block of each: the
+    capture on its own grid, the reference resampled onto it (with a margin
+    around it when georeferenced).  Returns the run's store with the two
+    images' common intensity scale and clip levels (:func:`ops.intensity_scale`),
+    recorded in the ``intensity`` attribute."""
+    t0 = time.perf_counter()
+    if group.attrs.get("ingest_complete"):
+        log.info("ingest: already complete (resume)")
+        scale = ops.IntensityScale.from_dict(group.attrs["intensity"])
+    else:
+        m = plan.margin
+        capture = functools.partial(tiles.read_clipped, plan.distorted.path, plan.shape)
+        jobs = [(run, "ingest/distorted", capture, b, (0, 0)) for b in plan.blocks]
+        jobs += [(run, "ingest/reference", plan.pairing.reference_window, b, (m, m)) for b in plan.reference_blocks]
+        stats = runner.map("ingest", _tasks.ingest_task, jobs)
+        n = len(plan.blocks)
+        names = (", ".join(r.path for r in plan.references), plan.distorted.path)
+        capture_stats, reference_stats = sum(stats[1:n], stats[0]), sum(stats[n + 1:], stats[n])
+        tiles.check_stats(capture_stats, names[1])
+        tiles.check_stats(reference_stats, names[0])
+        scale = ops.intensity_scale(reference_stats, capture_stats, names=names)
+        group.attrs["intensity"] = tiles.jsonable(scale.as_dict())
+        group.attrs["ingest_complete"] = True
+    timings["ingest_s"] = time.perf_counter() - t0
+    return dataclasses.replace(run, intensity=scale)
+
+
+def _register_tiles(runner, group, run, plan, resume, timings):
+    """Stage 3: every tile not yet registered, the longest first."""
+    t0 = time.perf_counter()
+    done = _tile_done(group)
+    grid = plan.grid
+    todo = sorted((t for t in grid if not done[t.index]), key=lambda t: -_expected_cost(t, plan.camera))
+    if resume:
+        log.info("resume: %d of %d tiles already registered", len(grid) - len(todo), len(grid))
+    stats = runner.map("register", _tasks.register_task,
+                       [(run, t, plan.camera, plan.params, plan.config.changes) for t in todo])
+    timings["register_s"] = time.perf_counter() - t0
+    timings["tiles_registered"] = len(todo)
+    if stats:
+        for name in ("kernel_s", "read_s", "write_s"):
+            timings[f"{name}_sum"] = float(sum(s[name] for s in stats))
+
+
+def _fuse_paths(runner, group, run, plan, timings):
+    """Stage 4: fuse the tiles' paths, re-solve the tiles that stray, write the
+    path arrays.  Returns (fused path, summed histogram, per-tile gains,
+    agreement, re-solved tiles)."""
+    t0 = time.perf_counter()
+    grid, camera, axes = plan.grid, plan.camera, plan.params.trajectory_axes
+    paths, states, hist, residual_hists, gains = _tile_results(group)
+    fused, agree, worst = _agreement(paths, states, grid, camera, axes)
+    resolve = _outliers(worst, ops.residual_median(residual_hists), plan.config.agreement)
+    if resolve:
+        log.info("re-solving %d tile(s) whose path disagrees with their band: %s", len(resolve), resolve)
+        args = []
+        for ty, tx in resolve:
+            tile = grid[ty, tx]
+            rows = tile.core[0]
+            others = np.delete(paths[rows], tx, axis=1)
+            prior = _fuse(others, np.delete(states[rows], tx, axis=1))
+            args.append((run, tile, camera, plan.params, plan.config.changes, prior))
+        runner.map("re-solve", _tasks.register_task, args)
+        paths, states, hist, _, gains = _tile_results(group)
+        fused, agree, worst = _agreement(paths, states, grid, camera, axes)
+    group["trajectory"][:] = fused.astype(np.float32)
+    group["tile_trajectory"][:] = paths.astype(np.float32)
+    group["tile_row_state"][:] = states
+    group["gain"][:] = gains.astype(np.float32)
+    group["tile_agreement"][:] = agree.astype(np.float32)
+    timings["fuse_s"] = time.perf_counter() - t0
+    return fused, hist, gains, agree, resolve
+
+
+def _change_masks(runner, run, plan, fused, hist, timings):
+    """Stage 5: one threshold, labels per block merged across seams, masks in
+    both grids.  Returns (threshold, changed pixels, components kept)."""
+    t0 = time.perf_counter()
+    shape, blocks, changes = plan.shape, plan.blocks, plan.config.changes
+    threshold = ops.change_threshold(hist, params=changes)
+    labelled = runner.map("label", _tasks.label_task, [(run, b, shape, threshold, changes) for b in blocks])
+    summaries = {s.index: s for s, _ in labelled}
+    offsets, root, area, peak = tiles.merge_tile_labels(summaries, blocks.grid_shape)
+    keep_global = ops.keep_components(area, peak, threshold, params=changes)
+    kept = {}  # block index -> keep flag per local label, for blocks that keep any
+    for b in blocks:
+        n = len(summaries[b.index].area)
+        keep = keep_global[root[offsets[b.index]:offsets[b.index] + n]].copy()
+        keep[0] = False
+        if keep.any():
+            kept[b.index] = (b.core, keep)
+    stored_path = fused.astype(np.float32).astype(np.float64)  # as the store holds it
+    args = []
+    for b in blocks:
+        window = b.grown(plan.grid.halo, shape)
+        pieces = [kept[i] for i in blocks.covering(window) if i in kept]
+        if pieces:
+            args.append((run, b, window, pieces, stored_path[window[0]], plan.camera, plan.params.trajectory_axes, changes))
+    masked = runner.map("masks", _tasks.mask_task, args)
+    timings["changes_s"] = time.perf_counter() - t0
+    timings["changes_compute_s_sum"] = float(sum(c for _, c in labelled + masked))
+    return threshold, sum(n for n, _ in masked), int(keep_global.sum())
+
+
+class _Counted:
+    """A runner that counts the tasks it was given (runs may share a runner)."""
+
+    def __init__(self, runner):
+        self.runner, self.tasks = runner, 0
+
+    def map(self, label, func, argument_lists):
+        argument_lists = list(argument_lists)
+        self.tasks += len(argument_lists)
+        return self.runner.map(label, func, argument_lists)
+
+
+def _pairing_attrs(pairing):
+    out = {"mode": pairing.mode, "reason": pairing.reason, "references": list(pairing.references)}
+    if pairing.coverage is not None:
+        out["coverage"] = pairing.coverage.fraction
+        out["read"] = list(pairing.coverage.files)
+    return out
+
+
+def _attributes(plan, result, scheduler):
+    """Root attributes of the store (DESIGN.md's output store)."""
+    axes, grid, camera = plan.params.trajectory_axes, plan.grid, plan.camera
+    attrs = {
+        "rsmb_version": VERSION,
+        "kernel_version": ops.KERNEL_VERSION,
+        "run_key": plan.key,
+        "parameters": dataclasses.asdict(plan.config),
+        "pose_axes": list(axes),
+        "pose_units": [ops.AXIS_UNITS[a] for a in axes],
+        "tile_grid": {"shape": list(grid.shape), "tile": grid.tile, "halo": grid.halo, "block": plan.blocks.tile,
+                      "tiles": list(grid.grid_shape), "row_edges": grid.row_edges.tolist(),
+                      "col_edges": grid.col_edges.tolist()},
+        "camera": {"focal_px": camera.focal, "center_xy": list(camera.center_xy)},
+        "inputs": {"distorted": {"path": plan.distorted.path, "sha256": plan.distorted.sha256},
+                   **{f"reference{'' if k == 0 else f'_{k + 1}'}": {"path": r.path, "sha256": r.sha256}
+                      for k, r in enumerate(plan.references)}},
+        "pairing": _pairing_attrs(plan.pairing),
+        "scheduler": scheduler,
+        "summary": result.as_dict(),
+        **plan.distorted.geo.to_attrs(),
+    }
+    if plan.pairing.mode == "pixel" and not plan.references[0].geo.is_empty:
+        attrs["reference_georeferencing"] = plan.references[0].geo.to_attrs()
+    return tiles.jsonable(attrs)
+
+
+def _finish(group, store, plan, result, scheduler, overwrite, geotiff):
+    """Stage 6: attributes, scratch arrays dropped, the store renamed into
+    place, GeoTIFFs on request."""
+    axes = plan.params.trajectory_axes
+    group.attrs.update(_attributes(plan, result, scheduler))
+    group.attrs["parallax"] = tiles.jsonable(
+        {"rule": "a candidate change is parallax when at its best relative depth (translations divided by it, "
+                 f"rotations kept; {plan.config.changes.layers and 'swept over ' + str(list(ops.LayerParams().depths)) or 'not tested: --no-layers'}) "
+                 f"at least {MIN_EXPLAINED:.0%} of its pixels fall below the change threshold "
+                 f"and those plus the pixels of ground the layer hid in the reference make up at least "
+                 f"{MIN_COVERED:.0%} of it",
+         "components": _tasks.layer_components(group)})
+    tiles.write_spatial_coords(group, plan.distorted.geo, plan.shape)
+    group["trajectory"].attrs.update({"pose_axes": list(axes), "units": [ops.AXIS_UNITS[a] for a in axes]})
+    for name in ("work", "ingest"):
+        del group[name]
+    final = tiles.finalize_result_store(store, plan.output, overwrite=overwrite)
+    if geotiff is not None:
+        # the reference-grid mask is on the reference's grid when compared pixel for pixel, else on the
+        # capture's nominal grid
+        reference_geo = plan.references[0].geo if plan.pairing.mode == "pixel" else plan.distorted.geo
+        write_products(final, geotiff, reference_geo, plan.distorted.geo, overwrite=overwrite)
+    log.info("wrote %s: %d changed px (threshold %.3f), %.2f MP/s", final, result.changed_pixels, result.threshold,
+             result.megapixels_per_s)
+
+
+def detect(reference, distorted, output, *, config=None, scheduler="threads", workers=None, overwrite=False,
+           resume=False, geotiff=None, runner=None, worker_timeout=60.0):
+    """Register ``distorted`` against ``reference`` and write the change store.
+
+    Parameters
+    ----------
+    reference : str or path-like, or a sequence of them
+        The reference: one image (GeoTIFF, PNG/JPEG, NPY or a zarr array) of
+        the capture's size, or, when it and the capture are georeferenced, a
+        reference set of any extent, pixel size and CRS (a mosaic of files):
+        only its part under the capture's footprint (plus the halo) is read and
+        resampled onto the capture's grid.
+    distorted : str or path-like
+        The capture; its grid is the grid of every output.
+    output : str or path-like
+        The zarr store to write (see DESIGN.md's output store).
+    config : DetectConfig, optional
+    scheduler : str
+        ``threads``, ``processes``, ``synchronous``, a ``tcp://`` address or a
+        scheduler file.
+    workers : int, optional
+        Worker count of a local scheduler (default: one per core).
+    overwrite : bool
+        Replace an existing output store.
+    resume : bool
+        Continue an interrupted run with the same inputs and configuration: only
+        tiles not yet registered run.
+    geotiff : str or path-like, optional
+        Directory where the masks are also written as GeoTIFFs.
+    runner : Runner, optional
+        An open runner to use instead of opening one for ``scheduler`` (runs
+        sharing a runner share its executor or cluster).
+    worker_timeout : float
+        Seconds a distributed run waits with no worker left before it fails.
+
+    Paths are made absolute before they reach a task: a dask worker may run
+    in another working directory.
+
+    Returns
+    -------
+    DetectResult
+
+    Raises
+    ------
+    InputError
+        Unusable inputs (unreadable, empty, constant, NaN, different sizes when
+        not georeferenced, footprints that do not overlap) or an output that
+        cannot be written (existing without ``overwrite``, under a file, on a
+        read-only file system).
+    """
+    t_start = time.perf_counter()
+    config = config or DetectConfig()
+    references = [os.path.abspath(r) for r in ([reference] if isinstance(reference, (str, os.PathLike)) else reference)]
+    distorted, output = os.path.abspath(distorted), os.path.abspath(output)
+    geotiff = None if geotiff is None else os.path.abspath(geotiff)
+    plan = _plan(references, distorted, output, config)
+    if resume:
+        done = _finished(output, plan.key)
+        if done is not None:
+            return DetectResult(**done)
+    check_scheduler(scheduler)
+    _check_outputs(output, geotiff, overwrite)
+    group = tiles.create_result_store(output, _specs(plan.grid, len(plan.params.trajectory_axes), plan.margin),
+                                      {"run_key": plan.key}, overwrite=overwrite, resume=resume)
+    store = str(tiles.partial_path(output))
+    run = _tasks.RunStore(store, plan.key, plan.margin)
+    if resume and group.attrs.get("run_key") != plan.key:
+        raise InputError(f"{output}: the interrupted run had other inputs or parameters; run without --resume")
+    timings = {}
+    try:
+        own = open_runner(scheduler, workers=workers, worker_timeout=worker_timeout) if runner is None else None
+        with own or contextlib.nullcontext(runner) as shared:
+            runner = _Counted(shared)
+            shape, grid = plan.shape, plan.grid
+            log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", plan.distorted.path, shape[0],
+                     shape[1], len(grid), grid.tile, grid.halo, scheduler)
+            run = _ingest(runner, group, run, plan, timings)
+            slow_stage(runner, group, run, plan, timings)
+            plan = plan.for_rows(group["work/slow"][:])  # the halo the rows need, the slow part known
+            if plan.grid.halo != grid.halo:
+                log.info("halo %d px for the rows (the slow part found needs no more)", plan.grid.halo)
+            grid = plan.grid
+            _register_tiles(runner, group, run, plan, resume, timings)
+            fused, hist, gains, agree, resolve = _fuse_paths(runner, group, run, plan, timings)
+            threshold, changed, components = _change_masks(runner, run, plan, fused, hist, timings)
+            tasks_per_tile = runner.tasks / len(grid)
+        timings["total_s"] = time.perf_counter() - t_start
+        result = DetectResult(
+            output=str(output), shape=list(shape), tiles=list(grid.grid_shape), tile_size=grid.tile,
+            halo=grid.halo, threshold=threshold, changed_pixels=int(changed),
+            changed_fraction=changed / float(shape[0] * shape[1]), components=components,
+            gain_min=float(np.nanmin(gains)), gain_max=float(np.nanmax(gains)),
+            resolved_tiles=[list(t) for t in resolve],
+            tile_agreement_px_max=float(np.nanmax(agree)) if np.isfinite(agree).any() else None,
+            tasks_per_tile=tasks_per_tile, megapixels_per_s=shape[0] * shape[1] / 1e6 / timings["total_s"],
+            timings=timings, pairing=plan.pairing.mode,
+            reference_coverage=None if plan.pairing.coverage is None else plan.pairing.coverage.fraction,
+            failed_rows=int((group["tile_row_state"][:] == 3).sum()),
+            clipped_reference=run.intensity.reference_clipped, clipped_capture=run.intensity.capture_clipped,
+            parallax_components=len(_tasks.layer_components(group)),
+            parallax_pixels=int(sum(c["pixels"] for c in _tasks.layer_components(group))))
+        _finish(group, store, plan, result, scheduler, overwrite, geotiff)
+        return result
+    except BaseException as error:
+        # an interruption keeps what a --resume can continue; unusable inputs do not
+        if isinstance(error, InputError) or not _tasks.resume_safe(group):
+            tiles.abort_result_store(store)
+        raise

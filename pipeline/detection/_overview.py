@@ -1,0 +1,98 @@
+"""The whole capture at a coarser scale, and what it is for: the slow
+out-of-plane part of the camera path (rx, ry; :mod:`ops.registration._slow`), found once
+per image, where its effects are largest (the image's far corners) and before
+any tile is registered.
+
+Each tile then registers on a reference pre-warped by that slow part.  Found
+on the image at a coarser scale, it costs the same small amount per image
+whatever its size (a fixed cost per capture of a survey night); where there is
+none (an in-plane capture), the tiles pay nothing.  The fit runs as one task
+on the runner, under its one-thread settings.
+"""
+
+import logging
+import time
+
+import numpy as np
+
+from rsmb import ops
+
+from . import _tasks
+
+log = logging.getLogger("rsmb")
+
+__all__ = ["overview_factor", "slow_stage"]
+
+#: The overview's smaller side is at least this many pixels.
+OVERVIEW_SIDE = 512
+
+
+def overview_factor(shape):
+    """The overview's reduction: the largest power of two that leaves the
+    capture's smaller side at least :data:`OVERVIEW_SIDE` px (1 for small
+    captures)."""
+    factor = 1
+    while min(shape) // (2 * factor) >= OVERVIEW_SIDE:
+        factor *= 2
+    return factor
+
+
+def _overview(runner, run, name, blocks, shape, phase, factor):
+    """The overview of the ingested array ``name`` (of ``shape``), its cells
+    starting at rows and columns ``phase + j * factor``: one task per block."""
+    parts = runner.map("overview", _tasks.overview_task, [(run, name, b, factor, phase) for b in blocks])
+    out = np.full([(n - phase) // factor for n in shape], np.nan, dtype=np.float32)
+    for (row, col), cells in parts:
+        out[row:row + cells.shape[0], col:col + cells.shape[1]] = cells
+    return out
+
+
+def slow_stage(runner, group, run, plan, timings):
+    """Stage 2b: the slow part of the path (``plan.params.slow_axes``) from the
+    overviews of the ingested capture and reference on the common intensity
+    scale, written to the store's ``work/slow`` (rx, ry in degrees, ty in px
+    per capture row; NaN when there is none)."""
+    t0 = time.perf_counter()
+    if not plan.params.slow_axes:
+        return
+    if not group.attrs.get("slow_complete"):
+        group["work/slow"][:] = _find_slow(runner, run, plan)
+        group.attrs["slow_complete"] = True
+    timings["slow_s"] = time.perf_counter() - t0
+    found = group["work/slow"][:]
+    if np.isfinite(found).any():
+        log.info("slow out-of-plane rotation: rx %.2f..%.2f deg, ry %.2f..%.2f deg", np.nanmin(found[:, 0]),
+                 np.nanmax(found[:, 0]), np.nanmin(found[:, 1]), np.nanmax(found[:, 1]))
+    else:
+        log.info("slow out-of-plane rotation: none found")
+
+
+def _find_slow(runner, run, plan):
+    """(H, 3) float32: rx, ry, ty of every capture row, NaN without a slow part.
+    The overviews are made one task per block, the fit is one task of its own
+    (it runs on the scheduler's workers, with their one-thread settings)."""
+    factor, margin = overview_factor(plan.shape), plan.margin
+    phase = margin % factor  # reference cells aligned with the capture's
+    ref_shape = (plan.shape[0] + 2 * margin, plan.shape[1] + 2 * margin)
+    capture = _overview(runner, run, "capture", plan.blocks, plan.shape, 0, factor)
+    reference = _overview(runner, run, "reference", plan.reference_blocks, ref_shape, phase, factor)
+    offset = -((margin - phase) // factor)  # the reference overview's cell 0 in capture cells
+    return runner.map("slow", _slow_task, [(reference, capture, offset, factor, plan.shape, plan.camera,
+                                            plan.params.slow_axes, plan.params.slow_search)])[0]
+
+
+def _slow_task(reference, capture, offset, factor, shape, cam, axes, search):
+    """The slow part found on the overviews (``factor`` times coarser than the
+    capture of ``shape``), at every capture row: (H, 3) float32."""
+    camera = ops.Camera(cam.focal / factor, tuple((c - 0.5 * (factor - 1)) / factor for c in cam.center_xy))
+    valid = np.isfinite(capture)
+    out = np.full((shape[0], 3), np.nan, dtype=np.float32)
+    if valid.sum() < 0.05 * valid.size:
+        return out
+    path = ops.estimate_slow(reference, np.nan_to_num(capture), valid, camera=camera,
+                             reference_origin_yx=(offset, offset), distorted_origin_yx=(0, 0),
+                             axes=axes, limit=2.0 * search, scale=factor)
+    if path is not None:
+        rows = path.at_rows(np.arange(shape[0]), factor=factor)
+        out[:, :2], out[:, 2] = rows.rotation, rows.ty
+    return out

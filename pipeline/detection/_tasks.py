@@ -1,0 +1,327 @@
+"""Tile tasks: each reads its own windows from the zarr store, calls the ops
+kernels and writes its core.  Registration runs per tile; ingest, labelling
+and masks run per block of tiles (see ``pipeline.detection._plan._block_grid``), a
+:class:`tiles.Tile` of the coarser grid.  Top-level functions with plain
+arguments, so any dask scheduler (threads, processes, distributed) can run
+them."""
+
+import functools
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import zarr
+
+from rsmb import ops
+from rsmb import tiles
+from rsmb.tiles import ingest_core, read_padded
+from rsmb.tiles._stitch import TileLabels
+
+__all__ = []
+
+
+def _specs(grid, dims, margin=0):
+    """The run's arrays: outputs, scratch, and the ingested inputs (the reference
+    with ``margin`` pixels around the capture grid)."""
+    h, w = grid.shape
+    t = grid.tile
+    ny, nx = grid.grid_shape
+    spec = tiles.ArraySpec
+    return {
+        "registered": spec((h, w), "float32", (t, t), ("y", "x"), float("nan")),
+        "change_score": spec((h, w), "float32", (t, t), ("y", "x"), 0.0),
+        "change_mask": spec((h, w), "uint8", (t, t), ("y", "x")),
+        "change_mask_reference": spec((h, w), "uint8", (t, t), ("y", "x")),
+        "parallax_mask": spec((h, w), "uint8", (t, t), ("y", "x")),
+        "trajectory": spec((h, dims), "float32", (t, dims), ("y", "pose_axis"), float("nan")),
+        "tile_trajectory": spec((h, nx, dims), "float32", (h, nx, dims), ("y", "tile_x", "pose_axis"), float("nan")),
+        "tile_row_state": spec((h, nx), "uint8", (h, nx), ("y", "tile_x")),
+        "gain": spec((ny, nx), "float32", (ny, nx), ("tile_y", "tile_x"), float("nan")),
+        "tile_agreement": spec((ny, nx), "float32", (ny, nx), ("tile_y", "tile_x"), float("nan")),
+        # scratch, one chunk per tile, deleted when the run finishes
+        "work/tile_rows": spec((h, nx, dims + 1), "float32", (t, 1, dims + 1), ("y", "tile_x", "column"),
+                               float("nan"), compressed=False),
+        "work/tile_summary": spec((ny, nx, _SUMMARY), "float64", (1, 1, _SUMMARY), ("tile_y", "tile_x", "value"),
+                                  compressed=False),
+        "work/labels": spec((h, w), "int32", (t, t), ("y", "x"), compressed=False),
+        "work/slow": spec((h, 3), "float32", (h, 3), ("y", "slow"), float("nan"), compressed=False),
+        "work/tile_layers": spec((ny, nx, LAYER_SLOTS, len(LAYER_FIELDS)), "float64",
+                                 (1, 1, LAYER_SLOTS, len(LAYER_FIELDS)), ("tile_y", "tile_x", "layer", "field"),
+                                 float("nan"), compressed=False),
+        "ingest/reference": spec((h + 2 * margin, w + 2 * margin), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
+        "ingest/distorted": spec((h, w), "float32", (t, t), ("y", "x"), float("nan"), compressed=False),
+    }
+
+
+_HIST = (ops.RESIDUAL_BINS, ops.SCORE_BINS)
+#: Depth layers a tile records (the largest), and what it records of each.
+LAYER_SLOTS = 32
+LAYER_FIELDS = ("row", "col", "pixels", "depth", "explained", "rmse")
+_SUMMARY = sum(_HIST) + 3  # per tile: both histograms, gain, seconds; 1 when done
+
+
+def _tile_results(group):
+    """Per-tile results of stage 1 from the scratch arrays: trajectories (H, nx, D),
+    row states (H, nx), summed histogram, residual histograms (ny, nx, bins),
+    gains (ny, nx)."""
+    rows = group["work/tile_rows"][:]
+    summary = group["work/tile_summary"][:]
+    hist = ops.ScoreHistogram(summary[..., :_HIST[0]].sum((0, 1)).astype(np.int64),
+                              summary[..., _HIST[0]:sum(_HIST)].sum((0, 1)).astype(np.int64))
+    states = np.nan_to_num(rows[..., -1]).astype(np.uint8)
+    return rows[..., :-1].astype(np.float64), states, hist, summary[..., :_HIST[0]], summary[..., -3]
+
+
+def _tile_done(group):
+    """(ny, nx) bool: tiles whose registration finished."""
+    return group["work/tile_summary"][..., -1] == 1
+
+
+def resume_safe(group):
+    """An interrupted run keeps its partial store when some tile finished, so that
+    ``--resume`` can continue it; otherwise the partial store is removed."""
+    try:
+        return bool(_tile_done(group).any())
+    except Exception:  # noqa: BLE001 - store already gone or unreadable
+        return False
+
+
+@dataclass(frozen=True)
+class RunStore:
+    """The partial store of one run, as the tasks see it: its path and the run
+    key.  The key names the inputs and parameters and with them the layout of
+    every array, so a process opens each array of a run once and keeps it (an
+    open costs milliseconds; a tile task is a few of them)."""
+
+    path: str
+    key: str
+    reference_offset: int = 0  # the reference array holds capture pixel (r, c) at (r + offset, c + offset)
+    intensity: ops.IntensityScale | None = None  # the inputs' common scale, known once ingested
+
+    def read(self, name, rows, cols):
+        """Window ``rows``, ``cols`` of the capture grid of the ingested image
+        ``name`` ("reference" or "capture") on the common scale, NaN where
+        clipped, no-data or beyond the array."""
+        return self.on_scale(self.ingested(name, rows, cols), name)
+
+    def ingested(self, name, rows, cols):
+        """The same window as ingested: before the common scale (its clip
+        levels apply here), NaN where no-data or beyond the array."""
+        if name == "reference":
+            m = self.reference_offset
+            return read_padded(_array(self, "ingest/reference"), slice(rows.start + m, rows.stop + m),
+                               slice(cols.start + m, cols.stop + m))
+        return read_padded(_array(self, "ingest/distorted"), rows, cols)
+
+    def on_scale(self, values, name):
+        """Ingested ``values`` of image ``name`` on the common scale, NaN where clipped."""
+        return values if self.intensity is None else self.intensity.apply(values, name)
+
+
+@functools.lru_cache(maxsize=32)
+def _array(store, name):
+    return zarr.open_group(store=store.path, mode="r+")[name]
+
+
+def ingest_task(store, name, read, block, offset):
+    """Ingest one block of the array ``name`` from ``read(rows, cols)`` (see
+    :func:`tiles.ingest_core`).  Returns its WindowStats."""
+    return ingest_core(read, block, _array(store, name), offset)
+
+
+def overview_task(store, name, block, factor, phase):
+    """The cells of the overview of the ingested image ``name`` ("reference"
+    or "capture", on the common scale) that start in one block's core
+    (:func:`tiles.block_overview`)."""
+    array = _array(store, "ingest/reference" if name == "reference" else "ingest/distorted")
+    return tiles.block_overview(_Scaled(array, store.intensity, name), block.core, factor, phase)
+
+
+class _Scaled:
+    """An ingested array read on the common intensity scale (slicing only)."""
+
+    def __init__(self, array, intensity, name):
+        self.array, self.intensity, self.name, self.shape = array, intensity, name, array.shape
+
+    def __getitem__(self, key):
+        values = self.array[key]
+        return values if self.intensity is None else self.intensity.apply(values, self.name)
+
+
+def _slow_prior(store, tile, params):
+    """The tile's rows of the slow path found on the overview (``work/slow``),
+    or None (none found, or none asked for)."""
+    if not params.slow_axes:
+        return None
+    found = _array(store, "work/slow")[tile.core[0]].astype(np.float64)
+    if not np.isfinite(found).all():
+        return None
+    return ops.SlowPath(found[:, :2], found[:, 2])
+
+
+def register_task(store, tile, camera, params, changes, prior=None):
+    """Stage 1: register one tile, tell parallax from change on it (when
+    ``changes.layers``) and write its core outputs.  The tile's summary row
+    (histograms, gain, seconds, and 1 in its last column) is written last: it
+    marks the tile complete for ``--resume``.
+
+    Returns
+    -------
+    dict
+        Seconds spent (read, kernel, write) and the tile's gain.
+    """
+    start = time.perf_counter()
+    ty, tx = tile.index
+    h, w = tile.core_shape
+    reference = store.read("reference", *tile.window)
+    raw = store.ingested("capture", *tile.core)
+    distorted = store.on_scale(raw, "capture")
+    read = time.perf_counter() - start
+    dist_valid = np.isfinite(distorted)
+    capture = np.nan_to_num(distorted)  # NaN: no-data
+    result = ops.register(reference, capture, camera=camera, params=params,
+                          reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
+                          distorted_valid=dist_valid, prior=prior, slow=_slow_prior(store, tile, params))
+    tile.check_core(result.registered)
+    result = ops.reground(result, reference, capture, camera=camera, params=params,
+                          threshold=_tile_threshold(result, capture, changes), min_area=changes.min_area,
+                          reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
+                          distorted_valid=dist_valid)
+    layers = _depth_layers(result, reference, capture, camera, tile, params, changes)
+    score = ops.change_score(layers.chi, layers.registered, params=changes)
+    score = np.where(result.valid, score, np.nan)  # NaN: unknown
+    clipped = _clipped_score(store, raw, tile, result, reference, camera, params)
+    if clipped is not None:
+        score = np.where(np.isfinite(clipped), clipped, score)
+    score = np.where(layers.parallax & np.isfinite(score), 0.0, score)  # parallax is never change, clipped or not
+    residual = np.where(result.valid, distorted - layers.registered, 0.0)
+    hist = ops.score_histogram(residual, score, result.valid)
+    write_start = time.perf_counter()
+    registered = layers.registered if store.intensity is None else store.intensity.to_input(layers.registered)
+    _array(store, "registered")[tile.core] = registered  # in the capture's units
+    _array(store, "change_score")[tile.core] = score.astype(np.float32)
+    _array(store, "parallax_mask")[tile.core] = layers.parallax.astype(np.uint8)
+    _array(store, "work/tile_layers")[ty, tx] = _layer_table(layers.components, tile)
+    _array(store, "work/tile_rows")[tile.core[0], tx] = np.concatenate(
+        [result.trajectory, result.row_state[:, None]], axis=1).astype(np.float32)
+    seconds = time.perf_counter() - start
+    _array(store, "work/tile_summary")[ty, tx] = np.concatenate(
+        [hist.residual, hist.score, [result.gain, seconds, 1.0]])
+    return {"index": tile.index, "seconds": seconds, "read_s": read, "write_s": time.perf_counter() - write_start,
+            "kernel_s": write_start - start - read, "pixels": h * w, "gain": result.gain}
+
+
+def _clipped_score(store, raw, tile, result, reference, camera, params):
+    """The one-sided score of the tile's saturated capture pixels
+    (:func:`ops.clipped_score`: change only where the registration's model is
+    clearly below the saturation value), or None when the capture has no
+    saturation value or none of its pixels sits at it.  Pixels at the floor
+    (0) carry no evidence: 0 is also what fills an image's edges when no
+    nodata value says so.  ``raw``: the tile's capture as ingested."""
+    high = None if store.intensity is None else store.intensity.capture_clip[1]
+    if high is None:
+        return None
+    at_high = raw >= np.float32(high)
+    if not at_high.any():
+        return None
+    model = ops.model_values(result, reference, at_high, camera=camera,
+                             reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin)
+    return ops.clipped_score(model, at_high, np.zeros(at_high.shape, bool), saturation=store.intensity.scaled(high),
+                             floor=0.0, lambda_chi=params.lambda_chi)
+
+
+def _depth_layers(result, reference, capture, camera, tile, params, changes):
+    """The depth-layer step of one tile with the change threshold of the tile's
+    own residuals (the mosaic's is not known yet): every candidate change
+    tested as a depth layer (:func:`ops.depth_layers`), then a dense
+    relative-depth map of what residual is left (:func:`ops.depth_map`), the
+    rows' weights and the depth map re-estimated in turn where the map took
+    depths widely (:func:`ops.depth_step`); the registration as it is when
+    ``changes.layers`` is off."""
+    if not changes.layers:
+        return ops.LayerResult(np.zeros(result.valid.shape, bool), result.registered, result.chi)
+    threshold = _tile_threshold(result, capture, changes)
+    resolved = params.resolved(camera)
+    out, _, _ = ops.depth_step(result, reference, capture, camera=camera, threshold=threshold, space=resolved.space,
+                               lambda_w=params.lambda_w, lambda_chi=params.lambda_chi,
+                               reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin)
+    return out
+
+
+def _tile_threshold(result, capture, changes):
+    """The change threshold of the tile's own residuals (the mosaic's is not known yet)."""
+    residual = np.where(result.valid, capture - result.registered, 0.0)
+    hist = ops.score_histogram(residual, np.abs(result.chi), result.valid)
+    return ops.change_threshold(hist, params=changes)
+
+
+def _layer_table(components, tile):
+    """A tile's depth layers as rows of :data:`LAYER_FIELDS` in image pixels,
+    the largest :data:`LAYER_SLOTS` of them, NaN in unused slots."""
+    table = np.full((LAYER_SLOTS, len(LAYER_FIELDS)), np.nan)
+    for k, c in enumerate(sorted(components, key=lambda c: -c["pixels"])[:LAYER_SLOTS]):
+        c = dict(c, row=c["row"] + tile.core_origin[0], col=c["col"] + tile.core_origin[1])
+        table[k] = [c[f] for f in LAYER_FIELDS]
+    return table
+
+
+def layer_components(group):
+    """Every tile's depth layers from the store's scratch table: a list of dicts
+    of :data:`LAYER_FIELDS` (image pixels), the largest first."""
+    table = group["work/tile_layers"][:].reshape(-1, len(LAYER_FIELDS))
+    rows = table[np.isfinite(table[:, 0])]
+    out = [dict(zip(LAYER_FIELDS, (float(v) for v in row))) for row in rows]
+    for c in out:
+        c["pixels"] = int(c["pixels"])
+    return sorted(out, key=lambda c: -c["pixels"])
+
+
+def label_task(store, block, shape, threshold, change_params):
+    """Stage 2: label the change candidates of one block's core, its score grown
+    by the margin the local half-maximum test needs.  Returns (TileLabels,
+    compute seconds)."""
+    window = block.grown(change_params.margin, shape)
+    score = _array(store, "change_score")[window]
+    start = time.perf_counter()
+    candidates = ops.change_candidates(score, threshold, params=change_params)
+    core = _inside(block.core, window)
+    labels, area, peak = ops.label_components(candidates[core], score[core])
+    compute = time.perf_counter() - start
+    if len(area) > 1:  # unwritten chunks read as 0: a block without candidates writes nothing
+        _array(store, "work/labels")[block.core] = labels
+    return TileLabels.from_labels(block.index, labels, area, peak), compute
+
+
+def _inside(part, window):
+    """``part`` (slices in image coordinates) relative to ``window``."""
+    return tuple(slice(p.start - w.start, p.stop - w.start) for p, w in zip(part, window))
+
+
+def mask_task(store, block, window, kept, trajectory, camera, axes, change_params):
+    """Stage 3: one block's changes in both grids.  The kept labels of the blocks
+    under its window (core plus halo) make the window's mask, small holes are
+    filled there (a hole cut by a seam is filled like any other), the core is
+    written, and the window's mask carried by the fused ``trajectory`` (rows of
+    the window) gives the block's changes in the reference grid.
+
+    ``kept`` lists (core, keep flags per local label) of the blocks under the
+    window that kept some label (blocks with none are not run: both masks read 0
+    where nothing was written).  Returns (changed core pixels, compute seconds).
+    """
+    labels = _array(store, "work/labels")[window]
+    start = time.perf_counter()
+    mask = np.zeros(labels.shape, dtype=bool)
+    for core, keep in kept:
+        part = _inside(tuple(slice(max(c.start, w.start), min(c.stop, w.stop)) for c, w in zip(core, window)), window)
+        mask[part] = keep[labels[part]]
+    mask = ops.fill_holes(mask, params=change_params)
+    core_mask = mask[_inside(block.core, window)]
+    ref = ops.changes_to_reference(mask, trajectory, axes=axes, camera=camera, reference_shape=block.core_shape,
+                                   reference_origin_yx=block.core_origin,
+                                   distorted_origin_yx=(window[0].start, window[1].start))
+    compute = time.perf_counter() - start
+    if core_mask.any():
+        _array(store, "change_mask")[block.core] = core_mask.astype(np.uint8)
+    if ref.any():
+        _array(store, "change_mask_reference")[block.core] = ref
+    return int(core_mask.sum()), compute

@@ -1,0 +1,1 @@
+"""``rsmb report``: the HTML report of a store and its figures."""

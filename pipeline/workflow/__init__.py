@@ -1,0 +1,1 @@
+"""``rsmb run``: nightly workflow files, validated and run step by step."""

@@ -1,0 +1,147 @@
+"""The dense depth map: with the rows' weights fixed, every pixel takes the
+relative depth whose re-rendering explains its window clearly better than the
+registered plane (METHOD.md section 3, item 8, extended to the whole residual).
+Raised structures are explained at about their depth; new objects are
+explained at none and are still detected."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from rsmb import ops
+from rsmb.ops.depth._depthmap import _geometry, _RowPoses, _sweep, _window_cost
+
+from .test_layers import EXPOSURE, SHAPE, _path  # the same scene and camera path
+
+
+def _run(pair):
+    reg = ops.register(pair.reference, pair.distorted, camera=pair.camera)
+    plain = ops.detect_changes(reg, pair.distorted, camera=pair.camera)
+    dense = ops.depth_map(reg, pair.reference, pair.distorted, camera=pair.camera, threshold=plain.threshold)
+    return reg, plain, dense
+
+
+def _rmse(registered, distorted, mask):
+    return float(np.sqrt(np.mean((registered[mask] - distorted[mask]) ** 2)))
+
+
+@pytest.fixture(scope="module")
+def raised():
+    """Four roofs at relative depths 0.4 to 0.8 under a translation of 15 to
+    19 px, and five new objects: rendered with the independent renderer."""
+    pair = ops.synthesize_pair(SHAPE, path=_path(), exposure=EXPOSURE, changes=5, noise=0.002, seed=41,
+                               interpolation="cubic", structures=4, depths=(0.4, 0.8))
+    return (pair, *_run(pair))
+
+
+def _explainable(pair, reg, threshold):
+    """Pixels of the roofs (not the ground they hid) that the rows' weights
+    explain at one of the true depths: what the depth map can reach."""
+    rows = _RowPoses.of(reg, pair.distorted.shape[0])
+    geometry = _geometry(pair.camera, (0, 0), (0, 0))
+    best = np.full(pair.distorted.shape, np.inf)
+    for depth in pair.depths:
+        rendered = rows.render(np.ascontiguousarray(pair.reference, np.float32), geometry, 1.0 / depth,
+                               np.ones(pair.distorted.shape, bool))
+        best = np.fmin(best, np.abs(rendered - pair.distorted))
+    ok = reg.valid & np.isfinite(reg.registered)
+    return pair.parallax_mask & ~pair.change_mask & ok & (best < threshold)
+
+
+def test_raised_structures_are_explained_at_a_depth(raised):
+    pair, reg, plain, dense = raised
+    reachable = _explainable(pair, reg, plain.threshold)
+    assert reachable.sum() > 2000
+    before, after = [np.abs(r - pair.distorted)[reachable] for r in (reg.registered, dense.registered)]
+    assert np.mean(before <= plain.threshold) < 0.5  # on the plane, the roofs are mostly residual
+    assert np.mean(after <= plain.threshold) >= 0.7, np.mean(after <= plain.threshold)
+    assert np.sqrt(np.mean(after ** 2)) < 0.6 * np.sqrt(np.mean(before ** 2))
+    # the roofs are nearer than the ground: where a depth was taken on them, it is nearer
+    taken = reachable & (dense.inverse_depth != 1.0)
+    assert np.mean(dense.inverse_depth[taken] > 1.0) > 0.9
+    # the ground off the roofs keeps its plane
+    ok = reg.valid & np.isfinite(reg.registered)
+    ground = ok & ~ndimage.binary_dilation(pair.parallax_mask | pair.change_mask, iterations=8)
+    assert np.mean(dense.inverse_depth[ground] != 1.0) < 0.02
+
+
+def test_new_objects_are_explained_at_no_depth(raised):
+    pair, reg, plain, dense = raised
+    assert not (dense.explained & pair.change_mask).any()
+    reg.registered[:], reg.chi[:] = dense.registered, dense.chi
+    after = ops.detect_changes(reg, pair.distorted, camera=pair.camera).mask
+    roofs = pair.parallax_mask & ~pair.change_mask
+    # the changes alone (roof pixels not counted): as well detected as on the plane
+    before_counts = ops.confusion(plain.mask & ~roofs, pair.change_mask)
+    counts = ops.confusion(after & ~roofs, pair.change_mask)
+    assert counts.recall >= before_counts.recall - 0.01 and counts.precision >= before_counts.precision - 0.01, \
+        (before_counts.as_dict(), counts.as_dict())
+    assert counts.recall >= 0.9
+    # and the roofs are no longer change
+    assert (after & roofs).sum() < 0.5 * (plain.mask & roofs).sum()
+
+
+def test_without_parallax_the_plane_stays():
+    pair = ops.synthesize_pair(SHAPE, motion="inplane", exposure=EXPOSURE, changes=6, noise=0.002, seed=42,
+                               interpolation="cubic")
+    reg, plain, dense = _run(pair)
+    ok = reg.valid & np.isfinite(reg.registered)
+    assert np.mean(dense.inverse_depth[ok] != 1.0) < 0.01
+    assert not (dense.explained & pair.change_mask).any()
+    reg.registered[:], reg.chi[:] = dense.registered, dense.chi
+    after = ops.detect_changes(reg, pair.distorted, camera=pair.camera).mask
+    assert ops.confusion(after, pair.change_mask).f_measure >= ops.confusion(plain.mask, pair.change_mask).f_measure - 0.005
+
+
+def test_no_residual_no_work():
+    """A registration that explains every pixel renders no depth at all."""
+    pair = ops.synthesize_pair((96, 96), motion="inplane", exposure=8.0, changes=0, noise=0.0, seed=3,
+                               interpolation="cubic")
+    reg = ops.register(pair.reference, pair.distorted, camera=pair.camera)
+    dense = ops.depth_map(reg, pair.reference, pair.distorted, camera=pair.camera, threshold=1.0)
+    assert dense.depths == 0 and (dense.inverse_depth == 1.0).all()
+    np.testing.assert_array_equal(dense.registered, reg.registered)
+
+
+def test_the_sweep_is_each_depth_rendered_and_box_filtered(raised):
+    """The fused sweep (one kernel for every depth, costs only on active pixels)
+    against the sweep written out: each depth rendered on the dilated mask,
+    its truncated residual box-filtered by OpenCV, the lowest cost kept."""
+    pair, reg, plain, dense = raised
+    g = pair.distorted.astype(np.float32)
+    g[5, 7:12] = np.nan  # no capture data: never takes a depth
+    tau, window = float(plain.threshold), 7
+    rng = np.random.default_rng(0)
+    active = ndimage.binary_dilation(rng.random(g.shape) < 0.002, iterations=4)
+    active[:3], active[:, -2:] = True, True  # the borders (replicated) too
+    render_mask = ndimage.binary_dilation(active, np.ones((window, window), bool))
+    rows = _RowPoses.of(reg, g.shape[0])
+    geometry = _geometry(pair.camera, (0, 0), (0, 0))
+    ref = np.ascontiguousarray(pair.reference, np.float32)
+    qs = np.linspace(0.0, 3.0, 13)
+    want_best = np.full(g.shape, np.inf, np.float32)
+    want_chosen, want_depth = np.full(g.shape, np.nan, np.float32), np.ones(g.shape, np.float32)
+    for q in qs:
+        rendered = rows.render(ref, geometry, float(q), render_mask)
+        cost = _window_cost(np.where(np.isfinite(rendered), np.abs(g - rendered), tau), tau, window)
+        better = active & (cost < want_best) & np.isfinite(rendered)
+        want_best[better], want_chosen[better], want_depth[better] = cost[better], rendered[better], q
+    best = np.full(g.shape, np.inf, np.float32)
+    chosen, depth = np.full(g.shape, np.nan, np.float32), np.ones(g.shape, np.float32)
+    args = (ref, rows.poses6, rows.weights, rows.offsets, rows.gain, *geometry, qs, render_mask.astype(np.uint8),
+            active.astype(np.uint8), g, tau, window)
+    _sweep(*args, 1, best, chosen, depth)
+    assert np.isfinite(want_best).sum() > 0.9 * active.sum() and not np.isfinite(best[~active]).any()
+    np.testing.assert_allclose(best, want_best, rtol=1e-5, atol=1e-6)
+    # depths whose costs tie to rounding may swap; everywhere else the same depth and value
+    same = depth == want_depth
+    assert same.mean() > 0.999
+    np.testing.assert_array_equal(chosen[same], want_chosen[same])
+    # coarse to fine: never below the full sweep's cost, and the same depth almost everywhere
+    fine = np.full(g.shape, np.inf, np.float32)
+    fine_chosen, fine_depth = np.full(g.shape, np.nan, np.float32), np.ones(g.shape, np.float32)
+    _sweep(*args, 4, fine, fine_chosen, fine_depth)
+    swept = np.isfinite(want_best)
+    assert np.array_equal(np.isfinite(fine), swept)
+    assert (fine[swept] >= want_best[swept] - 1e-6).all()
+    assert np.mean(fine_depth[swept] == want_depth[swept]) > 0.95, np.mean(fine_depth[swept] == want_depth[swept])

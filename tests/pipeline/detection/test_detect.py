@@ -1,0 +1,197 @@
+"""The tiled pipeline: tiled equals whole, seams, georeferencing, resume, schedulers."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rsmb import ops
+from rsmb import pipeline
+from rsmb.pipeline import DetectConfig, detect, write_pair
+
+from ..conftest import inplane_pair_files, read_store
+
+
+def _iou(a, b):
+    return (a & b).sum() / max((a | b).sum(), 1)
+
+
+@pytest.fixture(scope="module")
+def wide_pair(tmp_path_factory):
+    """1024 x 1000: 256-px tiles leave a ragged last column (232 px)."""
+    pair, _, ref, dist = inplane_pair_files(tmp_path_factory, "wide", (1024, 1000), changes=20, seed=7, fmt="npy")
+    return pair, ref, dist
+
+
+@pytest.fixture(scope="module")
+def whole_result(tmp_path_factory, wide_pair):
+    _, ref, dist = wide_pair
+    store = tmp_path_factory.mktemp("whole") / "whole.zarr"
+    detect(ref, dist, store, config=DetectConfig(tile=1024))
+    return read_store(store)
+
+
+@pytest.mark.parametrize("tile", [256, 240])
+def test_tiled_equals_whole(tmp_path, wide_pair, whole_result, tile):
+    pair, ref, dist = wide_pair
+    store = tmp_path / "tiled.zarr"
+    summary = detect(ref, dist, store, config=DetectConfig(tile=tile))
+    tiled, attrs = read_store(store)
+    whole, whole_attrs = whole_result
+    assert whole_attrs["tile_grid"]["tiles"] == [1, 1]
+    assert attrs["tile_grid"]["tiles"] == [4, 4]
+    widths = np.diff(attrs["tile_grid"]["col_edges"])
+    assert len(set(widths)) > 1  # a ragged (or merged) edge tile
+    a, b = whole["change_mask"] > 0, tiled["change_mask"] > 0
+    assert _iou(a, b) >= 0.98
+    assert _iou(whole["change_mask_reference"] > 0, tiled["change_mask_reference"] > 0) >= 0.98
+    rows = np.isfinite(whole["registered"]).mean(axis=1) > 0.5  # rows whose content is in the reference
+    diff = tiled["trajectory"][rows] - whole["trajectory"][rows]
+    assert np.sqrt(np.mean(diff[:, :2] ** 2, axis=0)).max() <= 0.1  # px, tx and ty
+    assert ops.confusion(b, pair.change_mask).f_measure >= 0.95
+    assert summary.tasks_per_tile <= 8
+
+
+def test_object_across_a_four_tile_corner_is_one_component(tmp_path):
+    pair = ops.synthesize_pair((512, 512), motion="wobble", changes=0, noise=0.002, seed=8, scale=0.5)
+    distorted = pair.distorted.copy()
+    distorted[249:263, 249:263] = 0.97  # 14 x 14 = 196 px, 49 px in each of four tiles
+    ref_path, dist_path = tmp_path / "ref.npy", tmp_path / "dist.npy"
+    np.save(ref_path, pair.reference)
+    np.save(dist_path, distorted)
+    changes = ops.ChangeParams(min_area=100)  # more than any quarter, less than the whole
+    results = {}
+    for tile in (256, 512):
+        store = tmp_path / f"t{tile}.zarr"
+        detect(ref_path, dist_path, store, config=DetectConfig(tile=tile, changes=changes))
+        results[tile] = read_store(store)[0]["change_mask"] > 0
+    from scipy import ndimage
+
+    labels, n = ndimage.label(results[256], structure=np.ones((3, 3)))
+    assert n == 1
+    assert results[256][256, 256] and results[256][250, 250] and results[256][261, 261]
+    assert 150 <= results[256].sum() <= 260
+    assert np.array_equal(results[256], results[512])
+
+
+def test_geotiff_in_geotiff_out(tmp_path, geotiff_pair_files):
+    import rasterio
+    import xarray as xr
+
+    _, ref, dist = geotiff_pair_files
+    store, gtiff = tmp_path / "geo.zarr", tmp_path / "masks"
+    detect(ref, dist, store, config=DetectConfig(tile=128), geotiff=gtiff)
+    _, attrs = read_store(store)
+    with rasterio.open(dist) as src:
+        crs, transform = src.crs, src.transform
+    assert attrs["proj:code"] == "EPSG:32618"
+    assert tuple(attrs["spatial:transform"]) == pytest.approx(tuple(transform)[:6])
+    for name in ("change_mask.tif", "change_mask_reference.tif", "change_score.tif"):
+        with rasterio.open(gtiff / name) as out:
+            assert out.crs == crs
+            assert out.transform.almost_equals(transform)
+            assert out.shape == (256, 256)
+    arrays = read_store(store)[0]
+    unknown = np.isnan(arrays["registered"])
+    with rasterio.open(gtiff / "change_mask.tif") as out:
+        mask = out.read(1)
+        assert out.nodata == 255 and out.descriptions == ("change_mask",)
+        assert np.array_equal(mask == 255, unknown)  # no-data where the registration is unknown
+        assert np.array_equal(mask[~unknown], arrays["change_mask"][~unknown])
+    with rasterio.open(gtiff / "change_score.tif") as out:
+        score = out.read(1)
+        assert np.array_equal(np.isnan(score), unknown)
+        assert np.array_equal(score[~unknown], arrays["change_score"][~unknown])
+    ds = xr.open_zarr(store)
+    assert ds.attrs["proj:code"] == "EPSG:32618" and ds["change_mask"].dims == ("y", "x")
+
+
+def test_smooth_gain_per_tile(tmp_path):
+    pair = ops.synthesize_pair((1024, 1024), motion="inplane", gain=(0.7, 1.3), changes=16, noise=0.002, seed=13)
+    ref, dist = write_pair(tmp_path / "pair", pair, fmt="npy")
+    store = tmp_path / "gain.zarr"
+    detect(ref, dist, store, config=DetectConfig(tile=256))
+    scores = pipeline.evaluate(store, tmp_path / "pair")
+    assert scores.gain["max_relative_error"] <= 0.03, scores.gain
+    assert scores.changes.f_measure >= 0.9, scores.changes
+
+
+def _rsmb(*args):
+    return [sys.executable, "-m", "rsmb", *map(str, args)]
+
+
+def _done_tiles(partial):
+    import zarr
+
+    try:
+        return int((zarr.open_group(str(partial), mode="r")["work/tile_summary"][..., -1] == 1).sum())
+    except Exception:  # noqa: BLE001 - not created yet
+        return 0
+
+
+def test_resume_after_kill_runs_only_missing_tiles(tmp_path):
+    pair = ops.synthesize_pair((768, 768), motion="inplane", changes=10, noise=0.002, seed=14)
+    ref, dist = write_pair(tmp_path / "pair", pair, fmt="npy")
+    store = tmp_path / "r.zarr"
+    args = [ref, dist, "-o", store, "--tile-size", 96, "--workers", 1]
+    proc = subprocess.Popen(_rsmb("-q", "detect", *args), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    partial = Path(str(store) + ".partial")
+    deadline = time.time() + 240
+    while _done_tiles(partial) < 6 and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.1)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done = _done_tiles(partial)
+    assert 6 <= done < 64 and not store.exists()
+    resumed = subprocess.run(_rsmb("detect", *args, "--resume"), capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"resume: {done} of 64 tiles already registered" in resumed.stderr
+    assert "register: 64/64" not in resumed.stderr
+    fresh = tmp_path / "fresh.zarr"
+    detect(ref, dist, fresh, config=DetectConfig(tile=96))
+    a, b = read_store(store)[0], read_store(fresh)[0]
+    for name in ("change_mask", "change_mask_reference", "change_score", "registered", "trajectory", "gain"):
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
+def test_resume_refuses_other_parameters(tmp_path, small_pair_files):
+    _, ref, dist = small_pair_files
+    store = tmp_path / "x.zarr"
+    partial = Path(str(store) + ".partial")
+    group = pipeline.detection._detect.tiles.create_result_store(store, {}, {"run_key": "something else"}, overwrite=False)
+    assert partial.exists() and group is not None
+    with pytest.raises(ops.InputError, match="without --resume"):
+        detect(ref, dist, store, resume=True)
+
+
+@pytest.mark.parametrize("scheduler", ["processes", "synchronous"])
+def test_local_schedulers_agree(tmp_path, small_pair_files, scheduler):
+    _, ref, dist = small_pair_files
+    a, b = tmp_path / "a.zarr", tmp_path / "b.zarr"
+    detect(ref, dist, a, config=DetectConfig(tile=128))
+    detect(ref, dist, b, config=DetectConfig(tile=128), scheduler=scheduler, workers=2)
+    for name in ("change_mask", "registered", "trajectory"):
+        np.testing.assert_array_equal(read_store(a)[0][name], read_store(b)[0][name])
+
+
+def test_store_opens_with_coordinates_and_crs(tmp_path, geotiff_pair_files):
+    import rasterio
+    import rioxarray  # noqa: F401 - registers .rio
+    import xarray as xr
+
+    _, ref, dist = geotiff_pair_files
+    store = tmp_path / "geo.zarr"
+    detect(ref, dist, store, config=DetectConfig(tile=128))
+    ds = xr.open_zarr(store)
+    with rasterio.open(dist) as src:
+        transform, epsg, (h, w) = src.transform, src.crs.to_epsg(), src.shape
+    np.testing.assert_allclose(ds.x.values, transform.c + transform.a * (np.arange(w) + 0.5))
+    np.testing.assert_allclose(ds.y.values, transform.f + transform.e * (np.arange(h) + 0.5))
+    assert ds.change_mask.rio.crs.to_epsg() == epsg == 32618
+    assert ds.change_mask.rio.transform() == transform
