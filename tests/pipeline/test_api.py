@@ -88,3 +88,20 @@ def test_each_command_calls_its_api_function(name, tmp_path, monkeypatch, capsys
     monkeypatch.setattr(importlib.import_module(module), attribute, spy)
     assert main(["-q", *argv]) == 1  # the spy's exception, reported as unexpected
     assert calls == [name] and "_Called" in capsys.readouterr().err
+
+
+def test_errors_are_public_and_defined_once(tmp_path):
+    """``rsmb.errors`` names the classes ``rsmb.ops`` defines (one definition),
+    and what the public API raises on bad input is caught from there."""
+    import rsmb.errors
+    from rsmb import ops
+
+    for name in rsmb.errors.__all__:
+        assert getattr(rsmb.errors, name) is getattr(ops, name), name
+        assert issubclass(getattr(rsmb.errors, name), rsmb.errors.RSMBError), name
+    assert issubclass(rsmb.errors.InputError, ValueError) and issubclass(rsmb.errors.RunError, RuntimeError)
+    missing = tmp_path / "missing.tif"
+    with pytest.raises(rsmb.errors.InputError, match="missing.tif"):
+        rsmb.detect(missing, missing, tmp_path / "o.zarr")
+    with pytest.raises(rsmb.errors.ParameterError, match="threshold"):
+        ops.ChangeParams(threshold="median")
