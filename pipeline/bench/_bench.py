@@ -14,6 +14,11 @@ Sections (``--sections``):
   homographies and of DIS dense flow on the same pixels; false changes.
 - ``yaw``, ``parallax``, ``intensity``: camera yaw and pitch, raised
   structures, clipped highlights and bit depths (:mod:`pipeline.bench._bench_method`).
+- ``realclip``: real aerial photographs stretched so that about 1 % of their
+  pixels sit at 0 and 1 % at 255, new dark objects on the clipped-white areas
+  and bright ones in the clipped-black, 4096^2 (``--quick``: 1024^2): F,
+  recall on the objects on clipped areas, pixels with no evidence, seconds,
+  beside DIS dense flow with rsmb's change rule (:mod:`pipeline.bench._bench_realclip`).
 - ``scale``: GeoTIFF pairs of growing size through ``rsmb detect`` in a
   subprocess, with detect's default tiles and with 512-px tiles: peak resident
   memory (``ru_maxrss`` of the process), throughput against the per-tile
@@ -51,7 +56,7 @@ from ._baseline import dis_flow, ecc_homography, orb_homography
 
 __all__ = ["SECTIONS", "run_bench"]
 
-SECTIONS = ("oracle", "speed", "real", "yaw", "parallax", "intensity", "scale", "gain", "survey")
+SECTIONS = ("oracle", "speed", "real", "yaw", "parallax", "intensity", "realclip", "scale", "gain", "survey")
 PAPER_INPLANE = dict(axes=("tx", "ty", "rz"), half_width=(3.0, 3.0, 2.0), step=(1.0, 1.0, 0.5))
 
 
@@ -395,6 +400,10 @@ def run_bench(*, sections=SECTIONS, data=None, quick=False, workdir=None, sizes=
                 results["parallax"] = bench_parallax(tmp, sizes=(512,) if quick else (512, 1024), workers=workers)
             if "intensity" in sections:
                 results["intensity"] = bench_intensity(tmp, size=256 if quick else 1024, workers=workers)
+        if "realclip" in sections:
+            from ._bench_realclip import bench_realclip
+
+            results["realclip"] = bench_realclip(data, tmp, size=1024 if quick else 4096, workers=workers)
         if "scale" in sections:
             results["scale"] = bench_scale(tmp, sizes=sizes or ((512, 1024) if quick else (2048, 4096, 8192)),
                                            tiles=(tile,) if tile else (None, 512))
