@@ -37,6 +37,7 @@ from ._store_atomic import (
     is_complete_store,
     partial_path,
     repair_interrupted_overwrite,
+    swap_into_place,
 )
 
 __all__ = [
@@ -84,6 +85,7 @@ __all__ = [
     "open_result_store",
     "partial_path",
     "repair_interrupted_overwrite",
+    "swap_into_place",
     "update_attrs",
     "jsonable",
 ]

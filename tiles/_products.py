@@ -34,6 +34,7 @@ from rsmb.ops._errors import InputError, ParameterError
 
 from ._gdal import quiet_gdal
 from ._io import GeoInfo, write_geotiff
+from ._store_atomic import swap_into_place
 
 __all__ = ["ChangePolygon", "change_polygons", "write_changes_gpkg", "write_cog"]
 
@@ -50,21 +51,6 @@ CHANGES_FIELDS = ("pixels", "area_m2", "mean_score", "peak_score")
 def _check_absent(path: Path, overwrite: bool) -> None:
     if path.exists() and not overwrite:
         raise InputError(f"{path}: output exists; pass --overwrite to replace it")
-
-
-def _move_into_place(tmp: Path, final: Path, overwrite: bool) -> None:
-    """Atomic rename of ``tmp`` to ``final``; without ``overwrite`` never clobbers
-    (a hard link fails if ``final`` appeared meanwhile)."""
-    if overwrite:
-        os.replace(tmp, final)
-        return
-    try:
-        os.link(tmp, final)
-    except FileExistsError:
-        raise InputError(f"{final}: output exists; pass --overwrite to replace it") from None
-    except OSError:  # no hard links on this file system
-        _check_absent(final, overwrite)
-        os.replace(tmp, final)
 
 
 def _aside(final: Path) -> tempfile.TemporaryDirectory:
@@ -140,7 +126,7 @@ def write_cog(
         copy(plain, cog, driver="COG", blocksize=COG_BLOCK, compress="DEFLATE",
              predictor="YES", overviews="AUTO", overview_resampling=overview_resampling.upper(),
              bigtiff="IF_SAFER")
-        _move_into_place(cog, final, overwrite)
+        swap_into_place(cog, final, overwrite=overwrite)
     return final
 
 
@@ -361,7 +347,7 @@ def write_changes_gpkg(
         with quiet_gdal(), _gpkg_date(last_change):
             write(str(out), geometry, field_data, list(CHANGES_FIELDS), layer=CHANGES_LAYER,
                   driver="GPKG", geometry_type="MultiPolygon", crs=crs)
-        _move_into_place(out, final, overwrite)
+        swap_into_place(out, final, overwrite=overwrite)
     return final
 
 

@@ -29,6 +29,7 @@ __all__ = [
     "is_complete_store",
     "partial_path",
     "repair_interrupted_overwrite",
+    "swap_into_place",
 ]
 
 _PARTIAL = ".partial"
@@ -146,6 +147,32 @@ def finalize_result_store(
     _check_replaceable(final, overwrite=overwrite)
     zarr.open_group(store=str(tmp), mode="r+").attrs[COMPLETE_ATTR] = True
     _consolidate(tmp)
+    swap_into_place(tmp, final, overwrite=overwrite)
+    return final
+
+
+def swap_into_place(tmp: str | os.PathLike, final: str | os.PathLike, *, overwrite: bool) -> Path:
+    """Make ``tmp``, a file or a directory written aside on the same file
+    system, visible as ``final``: the one way rsmb puts an output in place.
+
+    A file is renamed with one ``os.replace`` (without ``overwrite``, a hard
+    link first, so that a ``final`` that appeared meanwhile is never
+    clobbered).  A directory replacing another is two renames: the old one
+    is moved to ``<final>.replaced``, ``tmp`` renamed to ``final``, then the
+    old one deleted (put back if the second rename fails; a run killed
+    between them is finished or undone by :func:`repair_interrupted_overwrite`).
+
+    Raises
+    ------
+    InputError
+        ``final`` exists and ``overwrite`` is False (``tmp`` is left as it is).
+    """
+    tmp, final = Path(tmp), Path(final)
+    if os.path.lexists(final) and not overwrite:
+        raise InputError(f"{final}: output exists; pass --overwrite to replace it")
+    if not tmp.is_dir():
+        _swap_file(tmp, final, overwrite)
+        return final
     old = _replaced_path(final)
     if os.path.lexists(final):
         shutil.rmtree(old, ignore_errors=True)
@@ -158,6 +185,20 @@ def finalize_result_store(
         raise
     shutil.rmtree(old, ignore_errors=True)
     return final
+
+
+def _swap_file(tmp: Path, final: Path, overwrite: bool) -> None:
+    if overwrite:
+        os.replace(tmp, final)
+        return
+    try:
+        os.link(tmp, final)
+    except FileExistsError:
+        raise InputError(f"{final}: output exists; pass --overwrite to replace it") from None
+    except OSError:  # no hard links on this file system
+        os.replace(tmp, final)
+        return
+    os.unlink(tmp)
 
 
 def abort_result_store(tmp_group_or_path) -> None:

@@ -363,7 +363,8 @@ def _run_capture(capture, name, out, references, config, runner, report, slots):
     try:
         folder = out / name
         features, read = _build(capture, aside, folder, references, config, runner, report, slots)
-        _swap_into_place(aside, folder)
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        tiles.swap_into_place(aside, folder, overwrite=True)  # a capture redone replaces its folder
     finally:
         shutil.rmtree(aside, ignore_errors=True)
     return CaptureResult(str(capture), "done", "", list(read), str(folder), str(folder / "changes.gpkg"),
@@ -394,18 +395,6 @@ def _build(capture, aside, folder, references, config, runner, report, slots):
 
         write_report(store, aside / "report")
     return features, group.attrs["pairing"].get("read", [])
-
-
-def _swap_into_place(aside, folder):
-    """``aside`` renamed to ``folder``; an earlier folder there (a capture
-    redone) is moved away first and deleted after."""
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    old = folder.with_name(folder.name + ".replaced")
-    shutil.rmtree(old, ignore_errors=True)
-    if folder.exists():
-        os.replace(folder, old)
-    os.replace(aside, folder)
-    shutil.rmtree(old, ignore_errors=True)
 
 
 def _write_night(out, result):

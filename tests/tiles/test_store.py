@@ -209,6 +209,52 @@ def test_repair_of_an_interrupted_overwrite(out, arrays):
         open_result_store(out)
 
 
+def test_swap_into_place_files_and_directories(tmp_path, monkeypatch):
+    """The one swap: a file or a folder written aside becomes the output; an
+    existing one is replaced only with ``overwrite``; a failed second rename
+    puts the old folder back."""
+    import os
+
+    from rsmb.tiles import swap_into_place
+
+    final, tmp = tmp_path / "mask.tif", tmp_path / "aside.tif"
+    tmp.write_text("one")
+    assert swap_into_place(tmp, final, overwrite=False) == final
+    assert final.read_text() == "one" and not tmp.exists()
+    tmp.write_text("two")
+    with pytest.raises(InputError, match="mask.tif: output exists"):
+        swap_into_place(tmp, final, overwrite=False)
+    assert final.read_text() == "one" and tmp.read_text() == "two"
+    swap_into_place(tmp, final, overwrite=True)
+    assert final.read_text() == "two" and not tmp.exists()
+
+    folder, aside = tmp_path / "capture", tmp_path / "capture.partial"
+    for text in ("first", "second"):
+        aside.mkdir()
+        (aside / "changes.txt").write_text(text)
+        if text == "second":
+            with pytest.raises(InputError, match="capture: output exists"):
+                swap_into_place(aside, folder, overwrite=False)
+        swap_into_place(aside, folder, overwrite=True)
+        assert (folder / "changes.txt").read_text() == text and not aside.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["capture", "mask.tif"]
+
+    aside.mkdir()
+    (aside / "changes.txt").write_text("third")
+    real_replace = os.replace
+
+    def fail_second(src, dst):
+        if str(src) == str(aside):
+            raise OSError("disk gone")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", fail_second)
+    with pytest.raises(OSError, match="disk gone"):
+        swap_into_place(aside, folder, overwrite=True)
+    assert (folder / "changes.txt").read_text() == "second"
+    assert not (tmp_path / "capture.replaced").exists()
+
+
 # ---------------------------------------------------------------- CF coordinates
 
 # a north-up UTM grid whose origin is not on a round number
