@@ -2,16 +2,17 @@
 
 ``--scheduler`` takes ``threads`` (default), ``processes``, ``synchronous``, a
 ``tcp://`` address of a dask.distributed scheduler, or the path of a scheduler
-file.  Local schedulers need no server.  Tiles, not OpenCV, use the cores:
-OpenCV runs one thread per task.
+file.  Local schedulers need no server.  Tiles, not OpenCV or BLAS, use the
+cores: OpenCV and every BLAS library loaded (threadpoolctl) run one thread per
+task.
 
-Process-wide settings (:func:`configure_process`: OpenCV's thread count, glibc's
-mmap threshold) are made only in processes that exist to run rsmb: worker
-processes (``processes`` scheduler, dask.distributed workers), where each task
-makes them once, and the ``rsmb`` command itself.  A program that imports rsmb
+Process-wide settings (:func:`configure_process`: OpenCV's and BLAS's thread
+counts, glibc's mmap threshold) are made only in processes that exist to run
+rsmb: worker processes (``processes`` scheduler, dask.distributed workers),
+where each task makes them once, and the ``rsmb`` command itself.  A program that imports rsmb
 as a library keeps its settings: while :meth:`Runner.map` runs tasks in the
-calling process (``threads``, ``synchronous``), OpenCV's thread count is set to
-one and restored when the run ends, and malloc is left alone.
+calling process (``threads``, ``synchronous``), OpenCV's and BLAS's thread
+counts are set to one and restored when the run ends, and malloc is left alone.
 """
 
 import contextlib
@@ -37,74 +38,51 @@ log = logging.getLogger("rsmb")
 _MMAP_THRESHOLD = 4 << 20
 _process_ready = False
 _threads_lock = threading.Lock()
+_blas_lock = threading.Lock()  # one change of BLAS thread counts at a time (tasks of a worker process)
 _threads_runs = 0  # runs of Runner.map under way in this process
-_threads_saved = None  # OpenCV's and the OpenBLAS libraries' thread counts before the first of them
-# OpenBLAS thread-count functions by symbol prefix: numpy's and scipy's wheels
-# carry their own renamed OpenBLAS (scipy_openblas64_, scipy_openblas), OpenCV's
-# wheel a plain one (openblas)
-_OPENBLAS_SYMBOLS = (("scipy_openblas_get_num_threads64_", "scipy_openblas_set_num_threads64_"),
-                     ("scipy_openblas_get_num_threads", "scipy_openblas_set_num_threads"),
-                     ("openblas_get_num_threads64_", "openblas_set_num_threads64_"),
-                     ("openblas_get_num_threads", "openblas_set_num_threads"))
-_openblas_cache = {}  # library path -> (get, set) or None
+_threads_saved = None  # OpenCV's thread count and the BLAS limiter (threadpoolctl) set by the first of them
 
 
-def _openblas_libraries():
-    """(path, get, set): the thread-count functions of every OpenBLAS loaded in
-    this process (Linux: from /proc/self/maps; elsewhere none)."""
-    try:
-        with open("/proc/self/maps") as maps:
-            paths = {line.split(None, 5)[5].strip() for line in maps
-                     if "openblas" in line.lower() and len(line.split(None, 5)) == 6}
-    except OSError:
-        return []
-    out = []
-    for path in sorted(paths):
-        if path not in _openblas_cache:
-            _openblas_cache[path] = _openblas_functions(path)
-        if _openblas_cache[path] is not None:
-            out.append((path, *_openblas_cache[path]))
-    return out
+def _one_blas_thread():
+    """Every BLAS library loaded in this process (numpy's, scipy's, OpenCV's
+    OpenBLAS: threadpoolctl finds them) at one thread; returns the
+    threadpoolctl limiter whose ``restore_original_limits()`` undoes it (call
+    it through :func:`_as_blas_controller`)."""
+    from threadpoolctl import threadpool_limits
+
+    return _as_blas_controller(lambda: threadpool_limits(limits=1, user_api="blas"))
 
 
-def _openblas_functions(path):
-    try:
-        lib = ctypes.CDLL(path, mode=getattr(os, "RTLD_NOLOAD", 0))  # local: nothing else binds to it
-    except OSError:
-        return None
-    for get, set_ in _OPENBLAS_SYMBOLS:
-        if hasattr(lib, get) and hasattr(lib, set_):
-            getter, setter = getattr(lib, get), getattr(lib, set_)
-            getter.restype, setter.restype, setter.argtypes = ctypes.c_int, None, [ctypes.c_int]
-            return getter, setter
-    return None
+def _as_blas_controller(action):
+    """Run ``action`` (a change of BLAS thread counts) as the thread that may
+    make it, and give that right back after.
 
+    threadpoolctl lets one Python thread at a time change a pthreads OpenBLAS
+    (the first that did, while it lives; the others' calls do nothing), and
+    the runs here start and end in different threads (a survey's drivers), so
+    the right is taken before each change and released after, leaving it to
+    whoever asks next."""
+    import threadpoolctl
 
-def blas_threads():
-    """Thread counts of the OpenBLAS libraries loaded in this process: library
-    path -> count (empty where none is found)."""
-    return {path: get() for path, get, _ in _openblas_libraries()}
-
-
-def _set_blas_threads(counts):
-    """Set every loaded OpenBLAS to ``counts`` threads (an int for all, or
-    library path -> count as this returns); returns the counts they had."""
-    saved = {}
-    for path, get, set_ in _openblas_libraries():
-        saved[path] = get()
-        n = counts if isinstance(counts, int) else counts.get(path)
-        if n is not None and n != saved[path]:
-            set_(n)
-    return saved
+    clear = getattr(getattr(threadpoolctl, "OpenBLASController", None), "clear_controlling_thread", None)
+    with _blas_lock:
+        if clear is not None:  # threadpoolctl before 3.6 has no controlling thread
+            clear(force=True)
+        try:
+            return action()
+        finally:
+            if clear is not None:
+                clear(force=True)
 
 
 def configure_process():
     """Process-wide settings for a process that runs rsmb and nothing else.
 
-    One OpenCV thread (tiles, not OpenCV, use the cores), and on glibc arrays of
-    4 MiB and more served by mmap: glibc otherwise raises its mmap threshold as
-    large blocks are freed and keeps freed tile buffers in the heap, so the
-    resident size grows with the number of tiles.  Called by every task in a
+    One OpenCV thread and one BLAS thread (tiles, not libraries, use the
+    cores), and on glibc arrays of 4 MiB and more served by mmap: glibc
+    otherwise raises its mmap threshold as large blocks are freed and keeps
+    freed tile buffers in the heap, so the resident size grows with the number
+    of tiles.  Called by every task in a
     worker process and meant for the ``rsmb`` command's entry point; never call
     it in a program that uses rsmb as a library (the malloc setting cannot be
     undone).  Idempotent.
@@ -113,7 +91,7 @@ def configure_process():
     import cv2
 
     cv2.setNumThreads(1)
-    _set_blas_threads(1)  # numpy's may be loaded since the last task (scipy's, OpenCV's)
+    _one_blas_thread()  # numpy's may be loaded since the last task (scipy's, OpenCV's)
     if _process_ready:
         return
     _process_ready = True
@@ -134,7 +112,7 @@ def _one_thread_each():
 
     with _threads_lock:
         if _threads_runs == 0:
-            _threads_saved = cv2.getNumThreads(), _set_blas_threads(1)
+            _threads_saved = cv2.getNumThreads(), _one_blas_thread()
             cv2.setNumThreads(1)
         _threads_runs += 1
     try:
@@ -144,7 +122,7 @@ def _one_thread_each():
             _threads_runs -= 1
             if _threads_runs == 0:
                 cv2.setNumThreads(_threads_saved[0])
-                _set_blas_threads(_threads_saved[1])
+                _as_blas_controller(_threads_saved[1].restore_original_limits)
 
 
 class _Progress:

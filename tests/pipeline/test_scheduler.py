@@ -2,9 +2,11 @@
 process-wide settings only in worker processes."""
 
 import os
-import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from rsmb.pipeline import _scheduler
 from rsmb.pipeline._scheduler import Runner
@@ -67,7 +69,6 @@ def _negate(i):
 
 
 def test_one_shared_runner_serves_concurrent_runs():
-    from concurrent.futures import ThreadPoolExecutor
 
     from rsmb.pipeline._scheduler import open_runner
 
@@ -78,30 +79,57 @@ def test_one_shared_runner_serves_concurrent_runs():
     assert results == [[-(i + 100 * r) for i in range(30)] for r in range(3)]
 
 
-def _blas_threads(_):
-    return _scheduler.blas_threads()
+def _blas_threads(_=None):
+    """Thread count of every BLAS library loaded in this process: path -> count."""
+    return {lib["filepath"]: lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"}
 
 
 def test_a_run_in_the_calling_process_runs_one_blas_thread_and_restores_them():
     import numpy  # noqa: F401 - loads numpy's OpenBLAS
 
-    before = _scheduler.blas_threads()
+    before = _blas_threads()
     if not before:
-        pytest.skip("no OpenBLAS found in this process")
-    _scheduler._set_blas_threads(2)  # a caller's setting that is not one
-    caller = _scheduler.blas_threads()  # (a single-threaded build stays at one)
-    assert 2 in caller.values()
-    try:
+        pytest.skip("no BLAS found in this process")
+    with threadpool_limits(limits=2, user_api="blas"):  # a caller's setting that is not one
+        caller = _blas_threads()  # (a single-threaded build stays at one)
+        assert 2 in caller.values()
         out = Runner("threads", workers=2).map("blas", _blas_threads, [(i,) for i in range(4)])
         assert all(set(counts[path] for path in caller) == {1} for counts in out)  # one thread in tasks
-        after = _scheduler.blas_threads()
+        after = _blas_threads()
         assert {path: after[path] for path in caller} == caller  # the caller's setting is back
-    finally:
-        _scheduler._set_blas_threads(before)
-    assert {path: n for path, n in _scheduler.blas_threads().items() if path in before} == before
+    assert {path: n for path, n in _blas_threads().items() if path in before} == before
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="OpenBLAS is found through /proc/self/maps")
+def _blas_threads_slowly(_):
+    time.sleep(0.01)  # runs overlap
+    return _blas_threads()
+
+
+@pytest.mark.parametrize("caller_limit", [None, 2])
+def test_overlapping_runs_restore_the_callers_setting_when_the_last_ends(caller_limit):
+    """Runs under way at once, started and ended in other threads than the
+    caller's (a survey's drivers), with or without a limit the caller holds:
+    one thread in every task of each, the caller's counts back after the last."""
+    import numpy  # noqa: F401
+
+    if not _blas_threads():
+        pytest.skip("no BLAS found in this process")
+    runner = Runner("threads", workers=2, progress=False)
+    with threadpool_limits(limits=caller_limit, user_api="blas"):
+        caller = _blas_threads()
+        with ThreadPoolExecutor(2) as driver:
+            runs = [driver.submit(runner.map, "run", _blas_threads_slowly, [(i,) for i in range(20)])
+                    for _ in range(2)]
+            results = [f.result() for f in runs]
+        assert all(set(counts[path] for path in caller) == {1} for run in results for counts in run)
+        assert _blas_threads() == caller
+        if caller_limit is None:
+            with ThreadPoolExecutor(1) as other:  # the rsmb runs' threads left no hold on the setting
+                other.submit(threadpool_limits, limits=1, user_api="blas").result()
+            assert set(_blas_threads().values()) == {1}
+    assert _blas_threads() == caller
+
+
 def test_worker_processes_run_one_blas_thread():
     out = Runner("processes", workers=1).map("blas", _blas_threads, [(0,), (1,)])
     assert all(counts and set(counts.values()) == {1} for counts in out)  # numpy's OpenBLAS at least
