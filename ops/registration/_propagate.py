@@ -237,8 +237,9 @@ class _Propagation:
         # a grid holding both poses, at most twice the row neighbourhood wide:
         # a row that jumped farther than that is not a pose worth holding
         uncertainty = np.minimum(np.abs(own - predicted), 2 * np.asarray(self.space.half_width)) + self.step
-        center, _, _ = _refine_start(self.solver, predicted, np.sort(block), uncertainty, iterations=2,
-                                     stride=np.ones(len(self.step)))
+        with self.solver.clock.stage("reanchor"):
+            center, _, _ = _refine_start(self.solver, predicted, np.sort(block), uncertainty, iterations=2,
+                                         stride=np.ones(len(self.step)))
         dims = len(self.step)
         trust[:dims] = center
         trust[2 * dims] = rows[0]

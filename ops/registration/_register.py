@@ -9,7 +9,6 @@ interpolated and they are solved afterwards around it.  A gain slope along the
 rows is divided out and the rows solved again when it matters (:mod:`ops.registration._gain`).
 """
 
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -18,6 +17,7 @@ from .._camera import POSE_AXES, Camera
 from .._errors import ParameterError
 from ._gain import GAIN_SLOPE_RESOLVE, _column_gain_guess, _fold_gain, _gain_slope
 from .._oracle import optimal_chi
+from .._timing import StageClock
 from ._params import RegistrationParams
 from ._propagate import _Propagation, _shift_weights
 from ._rowproblem import _centroid, _RowProblem, _shift_margin, _Solver
@@ -58,6 +58,11 @@ class Registration:
         converging; centroid interpolated).
     axes : tuple of str
     timings : dict
+        CPU-seconds of the calling thread per stage (``<stage>_s``: ``slow``
+        the slow part, ``start`` the start search, ``rows`` the row solves,
+        ``reanchor`` rows solved again in a block where the path jumped,
+        ``gain_slope`` the gain-slope fits and the rounds of rows solved again
+        after them; :func:`reground` adds ``reground``), and counts.
     """
 
     registered: np.ndarray
@@ -120,6 +125,8 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
         ref[~np.asarray(reference_valid, bool)] = np.nan
     dist = np.asarray(distorted, dtype=np.float32)
     dvalid = np.ones(dist.shape, bool) if distorted_valid is None else np.asarray(distorted_valid, bool)
+    timings = {"slow_s": 0.0, "start_s": 0.0, "rows_s": 0.0, "reanchor_s": 0.0, "gain_slope_s": 0.0}
+    clock = StageClock(timings)
     if prior is not None:
         prior = np.asarray(prior, dtype=np.float64)
         expected = (dist.shape[0], len(params.trajectory_axes))
@@ -132,28 +139,33 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
     elif isinstance(slow, str):
         if slow != "auto":
             raise ParameterError(f"slow: expected 'auto', a SlowPath or None, got {slow!r}")
-        slow = estimate_slow(ref, dist, dvalid, camera=camera, reference_origin_yx=reference_origin_yx,
-                             distorted_origin_yx=distorted_origin_yx, axes=params.slow_axes,
-                             limit=2.0 * params.slow_search)
+        with clock.stage("slow"):
+            slow = estimate_slow(ref, dist, dvalid, camera=camera, reference_origin_yx=reference_origin_yx,
+                                 distorted_origin_yx=distorted_origin_yx, axes=params.slow_axes,
+                                 limit=2.0 * params.slow_search)
     elif slow is not None and slow.rotation.shape[0] != dist.shape[0]:
         raise ParameterError(f"slow: expected a path of {dist.shape[0]} rows, got {slow.rotation.shape[0]}")
-    args = (camera, params, reference_origin_yx, distorted_origin_yx, prior, slow)
+    args = (camera, params, reference_origin_yx, distorted_origin_yx, prior)
     # eq. 13 has one gain per row: a gain changing along the rows by more than a
     # few per cent biases the poses, so a slope fitted to the registration is
     # divided out of the capture and the rows are solved again (at most twice)
+    # the rounds after the first count as the gain slope's
     factor, scaled = None, dist
-    timings = {"coarse_search_s": 0.0, "rows_s": 0.0}
     for attempt in range(3):
-        out, delta, spent = _solve_rows(ref, scaled, dvalid, *args)
-        timings = {k: timings[k] + spent[k] for k in timings}
-        more = _gain_slope(out, scaled, delta) if params.gain_slope else None
+        rounds = clock if attempt == 0 else StageClock()
+        out, delta = _solve_rows(ref, scaled, dvalid, *args, slow, rounds)
+        if attempt:
+            timings["gain_slope_s"] += sum(rounds.seconds.values())
+        with clock.stage("gain_slope"):
+            more = _gain_slope(out, scaled, delta) if params.gain_slope else None
         if more is None:
             break
         resolve = np.abs(more - 1.0).max() > GAIN_SLOPE_RESOLVE
         if resolve and attempt == 0:
             # a fit after a biased solve falls short of the slope; column-block
             # brightness is the better first estimate when it agrees and is larger
-            guess = _column_gain_guess(ref, dist, dvalid, reference_origin_yx, distorted_origin_yx)
+            with clock.stage("gain_slope"):
+                guess = _column_gain_guess(ref, dist, dvalid, reference_origin_yx, distorted_origin_yx)
             if guess is not None and (guess[-1] - guess[0]) / (more[-1] - more[0]) > 1.0:
                 more = guess
         factor = more if factor is None else factor * more
@@ -161,7 +173,8 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
             break
         scaled = dist / factor
     if factor is not None:
-        _fold_gain(out, dist, factor, delta)
+        with clock.stage("gain_slope"):
+            _fold_gain(out, dist, factor, delta)
     trajectory = np.concatenate([out.trajectory, _slow_columns(slow, params.slow_axes, dist.shape[0])], axis=1)
     return Registration(out.registered, out.chi, out.valid, trajectory, out.row_gain, out.row_state,
                         params.trajectory_axes, timings, out.weights, factor, slow)
@@ -177,29 +190,31 @@ def _slow_columns(slow, axes, height):
     return out
 
 
-def _solve_rows(ref, dist, dvalid, camera, params, reference_origin_yx, distorted_origin_yx, prior, slow):
-    """Every row of ``dist`` against ``ref`` (eq. 13): outputs, the Huber delta, timings."""
+def _solve_rows(ref, dist, dvalid, camera, params, reference_origin_yx, distorted_origin_yx, prior, slow, clock):
+    """Every row of ``dist`` against ``ref`` (eq. 13): outputs and the Huber
+    delta; CPU-seconds per stage into ``clock`` (a :class:`StageClock`)."""
     row_pad = int(np.ceil(3 * max([params.half_width[d] for d, a in enumerate(params.axes) if a == "ty"] + [0])))
     problem = _RowProblem(ref, dist, dvalid, camera, reference_origin_yx, distorted_origin_yx, params.axes,
                           params.step, _shift_margin(params, prior), row_pad + 4, slow)
-    solver = _Solver(problem, params)
-    t0 = time.perf_counter()
+    solver = _Solver(problem, params, clock)
     height, width = dist.shape
-    energy = _row_energy(dist, dvalid)
-    informative = energy >= params.homogeneous * np.median(energy[energy > 0]) if (energy > 0).any() else energy > 0
-    out = _Outputs(height, width, len(params.axes))
-    mid = _start_row(informative, height)
-    half_band = int(max(16, min(48, height // 6)))
-    band = np.arange(max(0, mid - half_band), min(height, mid + half_band))
-    candidates = _coarse_search(problem, params, band) if prior is None else None
-    t1 = time.perf_counter()
+    with clock.stage("start"):
+        energy = _row_energy(dist, dvalid)
+        informative = energy >= params.homogeneous * np.median(energy[energy > 0]) if (energy > 0).any() else energy > 0
+        out = _Outputs(height, width, len(params.axes))
+        mid = _start_row(informative, height)
+        half_band = int(max(16, min(48, height // 6)))
+        band = np.arange(max(0, mid - half_band), min(height, mid + half_band))
+        candidates = _coarse_search(problem, params, band) if prior is None else None
     if prior is not None:
-        _register_prior(solver, prior, informative, out)
+        with clock.stage("rows"):
+            _register_prior(solver, prior, informative, out)
     elif params.shutter == "global":
-        _register_global(solver, candidates, informative, out)
+        with clock.stage("rows"):
+            _register_global(solver, candidates, informative, out)
     else:
         _register_rolling(solver, candidates, informative, mid, out)
-    return out, solver.delta, {"coarse_search_s": t1 - t0, "rows_s": time.perf_counter() - t1}
+    return out, solver.delta
 
 
 class _Outputs:
@@ -230,10 +245,12 @@ class _Outputs:
 
 def _register_rolling(solver, candidates, informative, mid, out):
     """Start near the middle, propagate outwards row by row."""
-    space, center = _start(solver, candidates, informative, mid)
-    run = _Propagation(solver, space, out)
-    run.from_row(mid, center, informative)
-    run.finish()
+    with solver.clock.stage("start"):
+        space, center = _start(solver, candidates, informative, mid)
+    with solver.clock.stage("rows"):
+        run = _Propagation(solver, space, out)
+        run.from_row(mid, center, informative)
+        run.finish()
     offsets = run.space.offsets()
     for i, (lattice, w) in run.weights.items():
         out.keep_weights(i, run.space.lattice_poses(np.asarray(lattice)[None, :] + offsets), w)

@@ -6,6 +6,7 @@ import numpy as np
 
 from .._camera import full_poses
 from .._oracle import solve_row_exact
+from .._timing import UNTIMED
 from ._propagate_kernels import _Settings
 from ._rowsolve import _solve_huber_nn
 from .._warp import _build_row, _gather_row, _warp_into
@@ -198,9 +199,10 @@ MIN_VALID_FRACTION = 0.1
 class _Solver:
     """Solves rows on lattice grids and keeps per-row weights."""
 
-    def __init__(self, problem, params):
+    def __init__(self, problem, params, clock=UNTIMED):
         self.problem = problem
         self.params = params
+        self.clock = clock  # CPU-seconds per stage (ops._timing.StageClock)
         self.delta = 0.5 * params.lambda_chi
         self.last_cost = np.inf
         self.last_converged = True  # the last solve met the KKT conditions before the iteration limit

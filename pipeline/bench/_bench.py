@@ -8,7 +8,8 @@ Sections (``--sections``):
 - ``speed``: ``detect`` end to end (threads, all cores) on a synthetic pair with
   in-plane motion and the paper's neighbourhoods, with the automatic ones (with
   and without the slow yaw/pitch part), and translation only; ECC homography
-  time on the same image.
+  time on the same image; each run's CPU-seconds per stage (summed over its
+  tasks) as a table.
 - ``real``: the rolling-shutter captures of ``--data`` (GS frame against its RS
   frame, no change): registration RMSE of ``detect``, of the ECC and ORB
   homographies and of DIS dense flow on the same pixels; false changes.
@@ -171,7 +172,7 @@ def bench_speed(workdir, *, size=2048, workers=None):
         s = _detect_rate(ref, dist, Path(workdir, f"{name}.zarr"), config, workers)
         scores = evaluate(Path(workdir, f"{name}.zarr"), Path(workdir, "speed_inplane"))
         out[name] = {"megapixels_per_s": s.megapixels_per_s, "seconds": s.timings["total_s"],
-                     "f_measure": scores.changes.f_measure}
+                     "f_measure": scores.changes.f_measure, "cpu_s": s.timings["cpu_s"]}
     t = time.perf_counter()
     ecc = ecc_homography(pair.reference, pair.distorted)
     out["ecc_seconds"] = time.perf_counter() - t
@@ -184,7 +185,7 @@ def bench_speed(workdir, *, size=2048, workers=None):
                                        changes=30)
         s = _detect_rate(ref_t, dist_t, Path(workdir, f"translation_{side}.zarr"), config, workers)
         out[f"translation_only_{side}"] = {"megapixels_per_s": s.megapixels_per_s,
-                                           "seconds": s.timings["total_s"]}
+                                           "seconds": s.timings["total_s"], "cpu_s": s.timings["cpu_s"]}
         shutil.rmtree(Path(workdir, f"speed_translation_{side}"), ignore_errors=True)
         shutil.rmtree(Path(workdir, f"translation_{side}.zarr"), ignore_errors=True)
     out["translation_only"] = out[f"translation_only_{size}"]
@@ -202,7 +203,20 @@ def bench_speed(workdir, *, size=2048, workers=None):
           f"{out[f'translation_only_{2 * size}']['megapixels_per_s']:.2f} MP/s); ECC homography "
           f"{out['ecc_seconds']:.2f} s "
           f"on the same image (its registration RMSE {out['ecc_registration_rmse_255']:.2f} /255)")
+    _echo(stage_table({k: v["cpu_s"] for k, v in out.items() if isinstance(v, dict) and "cpu_s" in v}))
     return out
+
+
+def stage_table(runs):
+    """Text table of CPU-seconds per stage (rows) and run (columns), summed over
+    each run's tasks (``timings["cpu_s"]`` of :func:`detect`)."""
+    names = list(runs)
+    stages = list(dict.fromkeys(k for r in runs.values() for k in r))
+    width = max(len(s) for s in stages + ["stage (CPU s)"])
+    lines = ["stage (CPU s)".ljust(width) + "".join(f"  {n[:28]:>28}" for n in names)]
+    for stage in stages:
+        lines.append(stage.ljust(width) + "".join(f"  {runs[n].get(stage, 0.0):28.2f}" for n in names))
+    return "\n".join(lines)
 
 
 # ------------------------------------------------------------------------- real

@@ -92,7 +92,8 @@ def _ingest(runner, group, run, plan, timings):
 
 
 def _register_tiles(runner, group, run, plan, resume, timings):
-    """Stage 3: every tile not yet registered, the longest first."""
+    """Stage 3: every tile not yet registered, the longest first.  Returns the
+    tiles' CPU-seconds per stage, summed (see :func:`_tasks.register_task`)."""
     t0 = time.perf_counter()
     done = _tile_done(group)
     grid = plan.grid
@@ -106,6 +107,11 @@ def _register_tiles(runner, group, run, plan, resume, timings):
     if stats:
         for name in ("kernel_s", "read_s", "write_s"):
             timings[f"{name}_sum"] = float(sum(s[name] for s in stats))
+    stages = {}
+    for s in stats:
+        for k, v in s["stages"].items():
+            stages[k] = stages.get(k, 0.0) + v
+    return stages
 
 
 def _fuse_paths(runner, group, run, plan, timings):
@@ -169,15 +175,38 @@ def _change_masks(runner, run, plan, fused, hist, timings):
 
 
 class _Counted:
-    """A runner that counts the tasks it was given (runs may share a runner)."""
+    """A runner that counts the tasks it was given (runs may share a runner)
+    and sums their CPU-seconds by label (``cpu``)."""
 
     def __init__(self, runner):
-        self.runner, self.tasks = runner, 0
+        self.runner, self.tasks, self.cpu = runner, 0, {}
 
     def map(self, label, func, argument_lists):
         argument_lists = list(argument_lists)
         self.tasks += len(argument_lists)
-        return self.runner.map(label, func, argument_lists)
+        done = self.runner.map(label, functools.partial(_tasks.cpu_timed, func), argument_lists)
+        self.cpu[label] = self.cpu.get(label, 0.0) + sum(c for _, c in done)
+        return [out for out, _ in done]
+
+
+#: The stages of ``timings["cpu_s"]``, in the order a run meets them: CPU-seconds summed over tasks.
+CPU_STAGES = ("ingest", "overview_slow", "read", "start", "rows", "reanchor", "gain_slope", "reground",
+              "depth", "score", "write", "tile_resolve", "change_masks")
+
+
+def _cpu_stages(runner, tile_stages):
+    """``timings["cpu_s"]``: CPU-seconds per stage summed over the run's tasks
+    (each task's own thread; on a distributed cluster too): the tiles' stages
+    (``tile_stages``, summed by :func:`_register_tiles`), and per task label the
+    stages run outside the tiles."""
+    cpu = runner.cpu
+    out = {"ingest": cpu.get("ingest", 0.0),
+           "overview_slow": cpu.get("overview", 0.0) + cpu.get("slow", 0.0) + tile_stages.get("slow", 0.0)}
+    out.update({k: tile_stages.get(k, 0.0) for k in CPU_STAGES if k not in ("ingest", "overview_slow")})
+    out["tile_resolve"] = cpu.get("re-solve", 0.0)
+    out["change_masks"] = cpu.get("label", 0.0) + cpu.get("masks", 0.0)
+    out["total"] = float(sum(out.values()))
+    return out
 
 
 def _pairing_attrs(pairing):
@@ -323,10 +352,11 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             if plan.grid.halo != grid.halo:
                 log.info("halo %d px for the rows (the slow part found needs no more)", plan.grid.halo)
             grid = plan.grid
-            _register_tiles(runner, group, run, plan, resume, timings)
+            tile_stages = _register_tiles(runner, group, run, plan, resume, timings)
             fused, hist, gains, agree, resolve = _fuse_paths(runner, group, run, plan, timings)
             threshold, changed, components = _change_masks(runner, run, plan, fused, hist, timings)
             tasks_per_tile = runner.tasks / len(grid)
+            timings["cpu_s"] = _cpu_stages(runner, tile_stages)
         timings["total_s"] = time.perf_counter() - t_start
         result = DetectResult(
             output=str(output), shape=list(shape), tiles=list(grid.grid_shape), tile_size=grid.tile,

@@ -14,6 +14,7 @@ import zarr
 
 from rsmb import ops
 from rsmb import tiles
+from rsmb.ops._timing import StageClock
 from rsmb.tiles import ingest_core, read_padded
 from rsmb.tiles._stitch import TileLabels
 
@@ -123,6 +124,14 @@ def _array(store, name):
     return zarr.open_group(store=store.path, mode="r+")[name]
 
 
+def cpu_timed(func, *args):
+    """``(func(*args), CPU-seconds of the calling thread)``: a task's own CPU
+    time, wherever the scheduler runs it."""
+    start = time.thread_time()
+    out = func(*args)
+    return out, time.thread_time() - start
+
+
 def ingest_task(store, name, read, block, offset):
     """Ingest one block of the array ``name`` from ``read(rows, cols)`` (see
     :func:`tiles.ingest_core`).  Returns its WindowStats."""
@@ -168,14 +177,19 @@ def register_task(store, tile, camera, params, changes, prior=None):
     Returns
     -------
     dict
-        Seconds spent (read, kernel, write) and the tile's gain.
+        Seconds spent (read, kernel, write: wall time), the tile's gain, and
+        ``stages``: CPU-seconds of this task's thread per stage (``read``,
+        ``slow``, ``start``, ``rows``, ``reanchor``, ``gain_slope``,
+        ``reground``, ``depth``, ``score``, ``write``).
     """
     start = time.perf_counter()
+    clock = StageClock()
     ty, tx = tile.index
     h, w = tile.core_shape
-    reference = store.read("reference", *tile.window)
-    raw = store.ingested("capture", *tile.core)
-    distorted = store.on_scale(raw, "capture")
+    with clock.stage("read"):
+        reference = store.read("reference", *tile.window)
+        raw = store.ingested("capture", *tile.core)
+        distorted = store.on_scale(raw, "capture")
     read = time.perf_counter() - start
     dist_valid = np.isfinite(distorted)
     capture = np.nan_to_num(distorted)  # NaN: no-data
@@ -183,32 +197,38 @@ def register_task(store, tile, camera, params, changes, prior=None):
                           reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
                           distorted_valid=dist_valid, prior=prior, slow=_slow_prior(store, tile, params))
     tile.check_core(result.registered)
+    with clock.stage("score"):
+        threshold = _tile_threshold(result, capture, changes)
     result = ops.reground(result, reference, capture, camera=camera, params=params,
-                          threshold=_tile_threshold(result, capture, changes), min_area=changes.min_area,
+                          threshold=threshold, min_area=changes.min_area,
                           reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
                           distorted_valid=dist_valid)
-    layers = _depth_layers(result, reference, capture, camera, tile, params, changes)
-    score = ops.change_score(layers.chi, layers.registered, params=changes)
-    score = np.where(result.valid, score, np.nan)  # NaN: unknown
-    clipped = _clipped_score(store, raw, tile, result, reference, camera, params)
-    if clipped is not None:
-        score = np.where(np.isfinite(clipped), clipped, score)
-    score = np.where(layers.parallax & np.isfinite(score), 0.0, score)  # parallax is never change, clipped or not
-    residual = np.where(result.valid, distorted - layers.registered, 0.0)
-    hist = ops.score_histogram(residual, score, result.valid)
+    with clock.stage("depth"):
+        layers = _depth_layers(result, reference, capture, camera, tile, params, changes)
+    with clock.stage("score"):
+        score = ops.change_score(layers.chi, layers.registered, params=changes)
+        score = np.where(result.valid, score, np.nan)  # NaN: unknown
+        clipped = _clipped_score(store, raw, tile, result, reference, camera, params)
+        if clipped is not None:
+            score = np.where(np.isfinite(clipped), clipped, score)
+        score = np.where(layers.parallax & np.isfinite(score), 0.0, score)  # parallax is never change, clipped or not
+        residual = np.where(result.valid, distorted - layers.registered, 0.0)
+        hist = ops.score_histogram(residual, score, result.valid)
     write_start = time.perf_counter()
-    registered = layers.registered if store.intensity is None else store.intensity.to_input(layers.registered)
-    _array(store, "registered")[tile.core] = registered  # in the capture's units
-    _array(store, "change_score")[tile.core] = score.astype(np.float32)
-    _array(store, "parallax_mask")[tile.core] = layers.parallax.astype(np.uint8)
-    _array(store, "work/tile_layers")[ty, tx] = _layer_table(layers.components, tile)
-    _array(store, "work/tile_rows")[tile.core[0], tx] = np.concatenate(
-        [result.trajectory, result.row_state[:, None]], axis=1).astype(np.float32)
-    seconds = time.perf_counter() - start
-    _array(store, "work/tile_summary")[ty, tx] = np.concatenate(
-        [hist.residual, hist.score, [result.gain, seconds, 1.0]])
+    with clock.stage("write"):
+        registered = layers.registered if store.intensity is None else store.intensity.to_input(layers.registered)
+        _array(store, "registered")[tile.core] = registered  # in the capture's units
+        _array(store, "change_score")[tile.core] = score.astype(np.float32)
+        _array(store, "parallax_mask")[tile.core] = layers.parallax.astype(np.uint8)
+        _array(store, "work/tile_layers")[ty, tx] = _layer_table(layers.components, tile)
+        _array(store, "work/tile_rows")[tile.core[0], tx] = np.concatenate(
+            [result.trajectory, result.row_state[:, None]], axis=1).astype(np.float32)
+        seconds = time.perf_counter() - start
+        _array(store, "work/tile_summary")[ty, tx] = np.concatenate(
+            [hist.residual, hist.score, [result.gain, seconds, 1.0]])
+    stages = {k[:-2]: v for k, v in {**result.timings, **clock.seconds}.items() if k.endswith("_s")}
     return {"index": tile.index, "seconds": seconds, "read_s": read, "write_s": time.perf_counter() - write_start,
-            "kernel_s": write_start - start - read, "pixels": h * w, "gain": result.gain}
+            "kernel_s": write_start - start - read, "pixels": h * w, "gain": result.gain, "stages": stages}
 
 
 def _clipped_score(store, raw, tile, result, reference, camera, params):

@@ -107,6 +107,9 @@ def _summary_table(summary):
 def _timings_table(timings):
     rows = []
     for key, value in timings.items():
+        if isinstance(value, dict):  # cpu_s: CPU-seconds per stage, summed over tasks
+            rows += [[_esc(f"CPU, {k.replace('_', ' ')} (s, summed over tasks)"), f"{v:.3f}"] for k, v in value.items()]
+            continue
         label = key[:-2] + " (s)" if key.endswith("_s") else (key[:-6] + " (s, summed over tasks)"
                                                               if key.endswith("_s_sum") else key)
         text = f"{value:.3f}" if isinstance(value, float) else _fmt(value)

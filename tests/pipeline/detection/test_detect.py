@@ -57,6 +57,19 @@ def test_tiled_equals_whole(tmp_path, wide_pair, whole_result, tile):
     assert summary.tasks_per_tile <= 8
 
 
+def test_summary_has_cpu_seconds_per_stage(whole_result):
+    """The store's summary splits the run's CPU time by stage (summed over
+    tasks): every stage named, none negative, the registration stages spent."""
+    from rsmb.pipeline.detection._detect import CPU_STAGES
+
+    _, attrs = whole_result
+    cpu = attrs["summary"]["timings"]["cpu_s"]
+    assert set(cpu) == set(CPU_STAGES) | {"total"}
+    assert all(v >= 0.0 for v in cpu.values())
+    assert cpu["rows"] > 0 and cpu["start"] > 0 and cpu["ingest"] > 0 and cpu["change_masks"] > 0
+    assert abs(cpu["total"] - sum(v for k, v in cpu.items() if k != "total")) < 1e-9
+
+
 def test_object_across_a_four_tile_corner_is_one_component(tmp_path):
     pair = ops.synthesize_pair((512, 512), motion="wobble", changes=0, noise=0.002, seed=8, scale=0.5)
     distorted = pair.distorted.copy()
