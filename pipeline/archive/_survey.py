@@ -251,9 +251,11 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         summary = _write_night(out, result)
         # the runner is closed: no task of a failed capture can still be writing its scratch
         shutil.rmtree(out / PARTIAL, ignore_errors=True)
+        from ._night_end import close_night
         from ._survey_html import write_index
 
-        index = write_index(out, ledger.captures(), prefix=_fixed_prefix(captures).absolute())
+        record = close_night(out, ledger, night, references)  # history, STAC catalog, map
+        index = write_index(out, ledger.captures(), prefix=_fixed_prefix(captures).absolute(), record=record)
     return SurveyResult(result.captures, result.done, result.skipped, result.failed, night, str(summary), str(index))
 
 

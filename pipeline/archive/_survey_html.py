@@ -1,6 +1,9 @@
 """The pages of a survey: ``thumbnail.png`` per capture and ``OUT_DIR/index.html``.
 
-The index lists every capture the ledger has ever seen (its latest attempt):
+The index starts with the night across nights (tonight's new, persisting and
+gone changes of the history, links to ``changes.gpkg`` and the STAC catalog,
+the map of the surveyed area), then lists every capture the ledger has ever
+seen (its latest attempt):
 capture, status, reason, changes and their area, its thumbnail and a link to
 its report.  Links are relative and there is no script, so the page opens from
 disk without a server.  Layout rules: the table is as wide as the window and no
@@ -38,7 +41,9 @@ _STYLE = """body{font-family:sans-serif;margin:1.5em;color:#222;overflow-wrap:an
 table{border-collapse:collapse;width:100%;table-layout:fixed}
 td,th{border:1px solid #ccc;padding:4px 8px;vertical-align:middle}th{background:#eee}
 td.num{text-align:right}.done{color:#161}.failed{color:#b00;font-weight:bold}.running{color:#a60}
-code{font-size:90%}img{display:block;max-width:100%;max-height:160px}"""
+code{font-size:90%}img{display:block;max-width:100%;max-height:160px}
+img.map{max-height:none;width:900px;border:1px solid #ccc}.new{color:#d62728}.persisting{color:#c76200}
+.gone{color:#555}"""
 #: (header, width) of the index's columns; the thumbnail column fits a 160-px thumbnail and its padding
 _COLUMNS = (("capture", "16%"), ("status", "6em"), ("reason", "auto"), ("changes", "6em"), ("changed m&sup2;", "7em"),
             ("thumbnail", "178px"), ("report", "5em"), ("when (UTC)", "8em"))
@@ -83,11 +88,32 @@ def _row(out, row, prefix):
             f"<td>{thumb}</td><td>{report}</td>{_cell(_when(row.finished or row.started))}</tr>")
 
 
-def write_index(out, rows, *, prefix=None):
+def _across_nights(out, record):
+    """The section on the history: tonight's counts, links to the history and
+    the catalog, the map (:class:`NightRecord` ``record``; empty without one)."""
+    if record is None:
+        return ""
+    link = lambda target: html.escape(os.path.relpath(target, out).replace(os.sep, "/"))  # noqa: E731
+    t = record.history.tonight
+    counts = (f"<p class='night'>Tonight ({html.escape(record.night)}, {t.captures} capture(s) observed): "
+              f"<b class='new'>{t.new} new</b>, <b class='persisting'>{t.persisting} persisting</b>, "
+              f"<b class='gone'>{t.gone} gone</b>. The history holds {len(record.history.changes)} change(s), "
+              f"{sum(c.status == 'unobserved' for c in record.history.changes)} unobserved since last seen.")
+    files = [f"<a href='{link(record.history.path)}'>changes.gpkg</a> (history)"] \
+        if record.history.path.is_file() else []
+    files.append(f"<a href='{link(record.catalog)}'>STAC catalog</a>")
+    image = (f"<a href='{link(record.map)}'><img class='map' src='{link(record.map)}' alt='map of the surveyed "
+             f"area: capture footprints and changes by status'></a>") if record.map else ""
+    return f"<h2>Across nights</h2>{counts} {', '.join(files)}.</p>{image}<h2>Captures</h2>"
+
+
+def write_index(out, rows, *, prefix=None, record=None):
     """``out/index.html``: one row per capture of ``rows`` (the ledger's
     latest attempts), written aside and renamed.  Captures under ``prefix``
-    (the night's glob prefix, a directory) are shown relative to it.  Returns
-    its path."""
+    (the night's glob prefix, a directory) are shown relative to it.  With a
+    ``record`` (:class:`NightRecord`), the page starts with tonight's new,
+    persisting and gone counts, links to the history and the STAC catalog, and
+    the map.  Returns its path."""
     out = Path(out)
     counts = {s: sum(r.status == s for r in rows) for s in ("done", "failed", "running")}
     body = "\n".join(_row(out, r, prefix) for r in rows)
@@ -98,6 +124,7 @@ def write_index(out, rows, *, prefix=None):
             f"</title><style>{_STYLE}</style></head><body><h1>rsmb survey: {html.escape(str(out))}</h1>"
             f"<p>{len(rows)} captures: {counts['done']} done, {counts['failed']} failed"
             f"{', %d interrupted' % counts['running'] if counts['running'] else ''}.{under}</p>"
+            f"{_across_nights(out, record)}"
             f"<table><colgroup>{columns}</colgroup><tr>{headers}</tr>\n{body}\n</table></body></html>\n")
     path = out / "index.html"
     tmp = out / ".index.html.partial"

@@ -184,6 +184,31 @@ def test_the_index_lists_every_capture_with_its_thumbnail(first_night):
     assert "table-layout:fixed" in page and "overflow-wrap:anywhere" in page
 
 
+def test_a_night_writes_its_history_catalog_and_map(first_night):
+    """After a night: ``changes.gpkg`` in the reference CRS holds every change
+    of the done captures (all new), ``stac/`` an item per done capture with
+    every asset resolving, and the index shows the counts and the map."""
+    import pyogrio
+    import pystac
+    import rasterio
+
+    out = first_night.out
+    done = [c for c in _summary(out)["captures"] if c["status"] == "done"]
+    with rasterio.open(first_night.references[0]) as ds:
+        reference_crs = ds.crs
+    info = pyogrio.read_info(out / "changes.gpkg", layer="changes")
+    assert info["crs"] == f"EPSG:{reference_crs.to_epsg()}"
+    _, _, _, fields = pyogrio.raw.read(out / "changes.gpkg", layer="changes", columns=["status", "captures"])
+    assert set(fields[0]) == {"new"} and 1 <= len(fields[0]) <= sum(c["changes"] for c in done)
+    assert set().union(*(json.loads(v) for v in fields[1])) <= {c["capture"] for c in done}
+    items = list(pystac.Catalog.from_file(str(out / "stac" / "catalog.json")).get_items(recursive=True))
+    assert sorted(i.properties["rsmb:capture"] for i in items) == sorted(c["capture"] for c in done)
+    assert all(os.path.exists(a.get_absolute_href()) for i in items for a in i.assets.values())
+    page = (out / "index.html").read_text()
+    assert f"{len(fields[0])} new</b>" in page and "<img class='map' src='map.png'" in page
+    assert (out / "map.png").stat().st_size > 0
+
+
 def test_a_rerun_redoes_nothing(first_night):
     """The same command again: the good captures are skipped, the bad ones
     retried (and failed again), no product is touched, and it takes at most 20 %
