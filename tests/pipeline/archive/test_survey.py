@@ -288,9 +288,10 @@ def test_the_next_capture_is_detected_while_one_writes_its_report(tmp_path, monk
 
 def _capture_files(out):
     """The bytes of every file in the night's capture folders (not the ledger,
-    nights/ or index.html: they record when each night ran), by path."""
+    nights/, stac/ or index.html: they record when each night ran), by path."""
     return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*"))
-            if p.is_file() and len(p.relative_to(out).parts) > 1 and p.relative_to(out).parts[0] != "nights"}
+            if p.is_file() and len(p.relative_to(out).parts) > 1
+            and p.relative_to(out).parts[0] not in ("nights", "stac")}
 
 
 def _without_timings(zarr_json):
