@@ -192,7 +192,9 @@ def _join(observed):
     (union-find over overlapping pairs): [(geometry, sorted captures)]."""
     import shapely
 
-    geoms = [g for g, _ in observed]
+    if not observed:
+        return []
+    geoms = np.array([g for g, _ in observed], dtype=object)
     parent = list(range(len(geoms)))
 
     def root(i):

@@ -30,6 +30,10 @@ Synthetic pairs are rendered by the independent cubic renderer
 - ``gain``: a smooth gain ramp 0.7 -> 1.3: per-tile gain error and F-measure.
 - ``survey``: georeferenced pairing on real aerial images, and a night of
   captures against one large detect (:mod:`pipeline.bench._bench_survey`).
+- ``history``: three nights of ``rsmb survey`` into one folder, a change that
+  appears, persists and goes and one seen by two overlapping captures: the
+  statuses of ``changes.gpkg`` against the truth, and the end-of-night step's
+  CPU-seconds (:mod:`pipeline.bench._bench_history`).
 """
 
 import contextlib
@@ -57,7 +61,8 @@ from ._baseline import dis_flow, ecc_homography, orb_homography
 
 __all__ = ["SECTIONS", "run_bench"]
 
-SECTIONS = ("oracle", "speed", "real", "yaw", "parallax", "intensity", "realclip", "scale", "gain", "survey")
+SECTIONS = ("oracle", "speed", "real", "yaw", "parallax", "intensity", "realclip", "scale", "gain", "survey",
+            "history")
 PAPER_INPLANE = dict(axes=("tx", "ty", "rz"), half_width=(3.0, 3.0, 2.0), step=(1.0, 1.0, 0.5))
 
 
@@ -427,4 +432,8 @@ def run_bench(*, sections=SECTIONS, data=None, quick=False, workdir=None, sizes=
             from ._bench_survey import bench_survey
 
             results["survey"] = bench_survey(data, tmp, quick=quick)
+        if "history" in sections:
+            from ._bench_history import bench_history
+
+            results["history"] = bench_history(tmp)
     return results

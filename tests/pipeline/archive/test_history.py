@@ -143,6 +143,18 @@ def test_nights_not_taken_in_are_caught_up_in_order(three_nights, tmp_path):
     assert (history.tonight.new, history.tonight.gone) == (1, 1)
 
 
+def test_a_night_that_finds_no_change_marks_what_it_covered_gone(tmp_path):
+    (tmp_path / "out").mkdir()
+    _night(tmp_path, NIGHTS[0])
+    update_history(tmp_path / "out", done_rows(tmp_path / "out"), NIGHTS[0], CRS)
+    folder, capture = tmp_path / "out" / "captures" / "e", tmp_path / "incoming" / "e.tif"
+    write_capture_folder(folder, capture, (0, 0), (128, 90), [])  # covers X, not Y; no change
+    record_done(tmp_path / "out", capture, folder, NIGHTS[1])
+    history = update_history(tmp_path / "out", done_rows(tmp_path / "out"), NIGHTS[1], CRS)
+    assert (_by_box(history, X).status, _by_box(history, Y).status) == ("gone", "unobserved")
+    assert (history.tonight.new, history.tonight.gone, history.tonight.captures) == (0, 1, 1)
+
+
 def test_the_history_is_in_the_reference_crs(tmp_path):
     (tmp_path / "out").mkdir()
     _night(tmp_path, NIGHTS[0])
