@@ -42,7 +42,7 @@ table{border-collapse:collapse;width:100%;table-layout:fixed}
 td,th{border:1px solid #ccc;padding:4px 8px;vertical-align:middle}th{background:#eee}
 td.num{text-align:right}.done{color:#161}.failed{color:#b00;font-weight:bold}.running{color:#a60}
 code{font-size:90%}img{display:block;max-width:100%;max-height:160px}
-img.map{max-height:none;width:900px;border:1px solid #ccc}.new{color:#d62728}.persisting{color:#c76200}
+img.map{max-height:none;width:auto;border:1px solid #ccc}.new{color:#d62728}.persisting{color:#c76200}
 .gone{color:#555}"""
 #: (header, width) of the index's columns; the thumbnail column fits a 160-px thumbnail and its padding
 _COLUMNS = (("capture", "16%"), ("status", "6em"), ("reason", "auto"), ("changes", "6em"), ("changed m&sup2;", "7em"),

@@ -94,6 +94,6 @@ def write_map(path, history, *, width_px=900):
     fig.tight_layout()
     path = Path(path)
     tmp = path.with_name(f".{path.name}.partial")
-    fig.savefig(tmp, format="png")
+    fig.savefig(tmp, format="png", bbox_inches="tight")  # no margin around the area
     os.replace(tmp, path)
     return path
