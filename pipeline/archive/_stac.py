@@ -5,7 +5,9 @@ DESIGN.md, "Survey archives".  A root Catalog (``stac/catalog.json``, so that
 :data:`COLLECTION_ID`, ``stac/rsmb-survey/collection.json``) with one Item per
 capture and night: the capture's latest
 done attempt in the ledger (a capture redone replaces its earlier Item, whose
-products no longer exist; the Items of every other capture and night are kept).
+products no longer exist, and an Item whose products moved, as when a survey
+folder of an earlier layout is migrated, is made again; the Items of every
+other capture and night are kept).
 Written with pystac as a self-contained catalog: every link and asset href is
 relative, so the folder can be moved or served as it is.
 
@@ -175,9 +177,11 @@ def update_catalog(out, rows, *, history=None):
         if row.status == "done" and (folder / "change_mask_reference.tif").is_file():
             current[row.capture] = (row, folder)
     items, stored = {}, _read(stac)
-    for item in stored:  # kept while its attempt is still the capture's latest done one
+    for item in stored:  # kept while its attempt is still the capture's latest done one, where it was
         capture, run_id = item.properties.get("rsmb:capture"), item.properties.get("rsmb:run_id")
-        if capture in current and current[capture][0].id == run_id:
+        mask = item.assets.get("change_mask_reference")
+        if capture in current and current[capture][0].id == run_id and mask is not None and \
+                Path(mask.get_absolute_href()) == current[capture][1] / "change_mask_reference.tif":
             for asset in item.assets.values():
                 asset.href = asset.get_absolute_href()
             items[capture] = item

@@ -142,3 +142,25 @@ def test_the_next_night_keeps_earlier_items_and_a_redone_capture_replaces_its_ow
     (collection,) = pystac.Catalog.from_file(str(catalog)).get_children()
     west, south, east, north = collection.extent.spatial.bboxes[0]
     assert all(west <= i.bbox[0] and east >= i.bbox[2] for i in items.values())
+
+
+def test_an_item_whose_products_moved_is_made_again(night1):
+    """The ledger records a capture's folder elsewhere (a survey folder migrated to a new layout): its
+    item is rebuilt there, with every asset resolving, the other item kept as it was."""
+    import shutil
+    import sqlite3
+
+    root, catalog, _ = night1
+    old = root / "out" / "captures" / "flight" / "a"
+    new = root / "out" / "captures" / "flight" / "a.tif"
+    shutil.move(old, new)
+    with sqlite3.connect(root / "out" / "ledger.sqlite") as db:
+        (outputs,) = db.execute("SELECT outputs FROM runs WHERE capture LIKE '%a.tif'").fetchone()
+        db.execute("UPDATE runs SET outputs = ? WHERE capture LIKE '%a.tif'",
+                   (json.dumps({**json.loads(outputs), "output": str(new)}),))
+    before = {i.id: i.to_dict() for i in _items(catalog)}
+    items = {i.properties["rsmb:capture"]: i for i in _items(update_catalog(root / "out", done_rows(root / "out")))}
+    a, b = items[str(root / "incoming" / "flight" / "a.tif")], items[str(root / "incoming" / "flight" / "b.tif")]
+    assert a.assets["change_mask_reference"].get_absolute_href() == str(new / "change_mask_reference.tif")
+    assert all(os.path.exists(x.get_absolute_href()) for x in a.assets.values())
+    assert b.to_dict() == before[b.id]
