@@ -209,7 +209,8 @@ def _check_captures(ctx, param, value):
 @click.option("--captures", required=True, callback=_check_captures,
               help="Glob of the night's captures ('**' recurses); quote it.")
 @click.option("-o", "--output", "out_dir", required=True, type=click.Path(),
-              help="The survey's folder: one folder per capture, ledger.sqlite, nights/, index.html. New, empty, "
+              help="The survey's folder: one folder per capture, ledger.sqlite, nights/, index.html, the change "
+                   "history changes.gpkg and the STAC catalog stac/. New, empty, "
                    "or the folder of earlier nights.")
 @registration_options
 @tile_option("Core tile side, pixels (at least 32) [default: 1024: captures run side by side, each in few tiles].")
@@ -230,6 +231,8 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes
 
     Each capture gets a folder with its store, changes.gpkg, COGs, thumbnail
     and report; a capture done with the same inputs and parameters is skipped.
+    Across nights: the change history (changes.gpkg: new, persisting, gone,
+    unobserved), a STAC catalog (stac/) and a map on index.html.
     Exit code 3 when some captures failed (the rest finished)."""
     from .archive._survey import survey as run
 
