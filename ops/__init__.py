@@ -21,6 +21,7 @@ from .changes._changes import (
     fill_holes,
     keep_components,
     label_components,
+    large_components,
     residual_median,
     score_histogram,
 )
@@ -96,6 +97,7 @@ __all__ = [
     "change_candidates",
     "label_components",
     "keep_components",
+    "large_components",
     "fill_holes",
     "changes_to_reference",
     "kapur_threshold",

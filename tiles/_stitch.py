@@ -2,14 +2,17 @@
 
 Each tile labels the change candidates of its core on its own.  Two labels of
 neighbouring tiles belong to one component when 8-connected pixels across their
-shared seam (or corner) carry them; a union-find over those pairs gives global
-components, whose area and peak are the sums and maxima of their pieces.  An
+shared seam (or corner) carry them; the connected components of the graph of
+those pairs (``scipy.sparse.csgraph``) are the global components, whose area
+and peak are the sums and maxima of their pieces.  An
 object cut by a seam is thus measured whole before the minimum area applies.
 """
 
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
+from scipy.sparse import csgraph
 
 __all__ = ["TileLabels", "merge_tile_labels"]
 
@@ -41,15 +44,6 @@ class TileLabels:
     def from_labels(cls, index, labels, area, peak):
         return cls(tuple(index), area, peak, labels[0].copy(), labels[-1].copy(), labels[:, 0].copy(),
                    labels[:, -1].copy())
-
-
-def _find(parent, i):
-    root = i
-    while parent[root] != root:
-        root = parent[root]
-    while parent[i] != root:
-        parent[i], i = root, parent[i]
-    return root
 
 
 def _pairs_8(a, b):
@@ -88,32 +82,29 @@ def merge_tile_labels(summaries, grid_shape):
     for index in sorted(summaries):
         offsets[index] = total
         total += len(summaries[index].area)
-    parent = np.arange(total)
+    edges = []  # global label pairs that touch across a seam or a corner
 
-    def union(pairs, oa, ob):
-        for la, lb in pairs:
-            ra, rb = _find(parent, oa + int(la)), _find(parent, ob + int(lb))
-            if ra != rb:
-                parent[max(ra, rb)] = min(ra, rb)
+    def link(pairs, oa, ob):
+        edges.append(np.asarray(pairs, np.int64).reshape(-1, 2) + (oa, ob))
 
     ny, nx = grid_shape
     for (ty, tx), s in summaries.items():
         if tx + 1 < nx:
             right = summaries[(ty, tx + 1)]
-            union(_pairs_8(s.right, right.left), offsets[(ty, tx)], offsets[(ty, tx + 1)])
+            link(_pairs_8(s.right, right.left), offsets[(ty, tx)], offsets[(ty, tx + 1)])
         if ty + 1 < ny:
             below = summaries[(ty + 1, tx)]
-            union(_pairs_8(s.bottom, below.top), offsets[(ty, tx)], offsets[(ty + 1, tx)])
+            link(_pairs_8(s.bottom, below.top), offsets[(ty, tx)], offsets[(ty + 1, tx)])
             # diagonal neighbours touch at one corner pixel
             if tx + 1 < nx:
                 d = summaries[(ty + 1, tx + 1)]
                 if s.bottom[-1] > 0 and d.top[0] > 0:
-                    union([(s.bottom[-1], d.top[0])], offsets[(ty, tx)], offsets[(ty + 1, tx + 1)])
+                    link([(s.bottom[-1], d.top[0])], offsets[(ty, tx)], offsets[(ty + 1, tx + 1)])
             if tx > 0:
                 d = summaries[(ty + 1, tx - 1)]
                 if s.bottom[0] > 0 and d.top[-1] > 0:
-                    union([(s.bottom[0], d.top[-1])], offsets[(ty, tx)], offsets[(ty + 1, tx - 1)])
-    root = np.array([_find(parent, i) for i in range(total)], dtype=np.int64)
+                    link([(s.bottom[0], d.top[-1])], offsets[(ty, tx)], offsets[(ty + 1, tx - 1)])
+    root = _components(edges, total)
     area = np.zeros(total, dtype=np.int64)
     peak = np.zeros(total, dtype=np.float32)
     for index, s in summaries.items():
@@ -121,3 +112,14 @@ def merge_tile_labels(summaries, grid_shape):
         np.add.at(area, ids, s.area)
         np.maximum.at(peak, ids, s.peak)
     return offsets, root, area, peak
+
+
+def _components(edges, total):
+    """Component id of each of ``total`` nodes joined by ``edges`` (arrays of
+    pairs): the smallest node id of its component."""
+    pairs = np.concatenate(edges) if edges else np.zeros((0, 2), np.int64)
+    graph = sparse.coo_matrix((np.ones(len(pairs), np.int32), (pairs[:, 0], pairs[:, 1])), shape=(total, total))
+    _, component = csgraph.connected_components(graph, directed=False)
+    smallest = np.full(component.max(initial=-1) + 1, total, np.int64)
+    np.minimum.at(smallest, component, np.arange(total))
+    return smallest[component]

@@ -38,6 +38,7 @@ import cv2
 import numba
 import numpy as np
 from scipy import ndimage
+from skimage import measure
 
 from .._camera import pose_homographies
 from .._errors import ParameterError
@@ -47,7 +48,7 @@ from ._threshold import kapur_threshold_histogram
 __all__ = ["ChangeParams", "ScoreHistogram", "score_histogram", "change_threshold", "residual_median", "change_score",
            "clipped_score",
            "RESIDUAL_BINS", "SCORE_BINS", "change_candidates",
-           "label_components", "keep_components", "fill_holes", "change_mask", "changes_to_reference",
+           "label_components", "keep_components", "large_components", "fill_holes", "change_mask", "changes_to_reference",
            "ChangeResult", "detect_changes"]
 
 THRESHOLD_METHODS = ("noise", "kapur")
@@ -319,19 +320,21 @@ def label_components(mask, score):
     Returns
     -------
     labels : ndarray of int32, shape (H, W)
-        0 background, 1..n components.
+        0 background, 1..n components (scikit-image's labelling, in raster order).
     area : ndarray of int64, shape (n + 1,)
     peak : ndarray of float32, shape (n + 1,)
         Largest ``score`` of each component (a component is a change when its
         peak reaches the threshold: hysteresis).
     """
-    labels, n = ndimage.label(mask, structure=np.ones((3, 3), bool))
+    labels, n = measure.label(mask, connectivity=2, return_num=True)
     labels = labels.astype(np.int32)
+    # region statistics by bincount: skimage's regionprops_table gives the same
+    # numbers about ten times slower (a Python loop over the regions; measured on
+    # a candidate mask of 2600 components)
     area = np.bincount(labels.ravel(), minlength=n + 1).astype(np.int64)
     peak = np.zeros(n + 1, dtype=np.float32)
-    if n:
-        np.maximum.at(peak, labels.ravel(), np.nan_to_num(np.asarray(score, np.float32)).ravel())
-    peak[0] = 0.0
+    inside = labels > 0  # ufunc.at over the components' pixels only: it is slow per element
+    np.maximum.at(peak, labels[inside], np.nan_to_num(np.asarray(score, np.float32)[inside]))
     return labels, area, peak
 
 
@@ -343,23 +346,47 @@ def keep_components(area, peak, threshold, *, params=ChangeParams()):
     return keep
 
 
+def large_components(mask, min_area, *, connectivity=2, border=False):
+    """The components of ``mask`` with at least ``min_area`` pixels: the one
+    label-and-area filter of rsmb.
+
+    Parameters
+    ----------
+    mask : ndarray of bool, shape (H, W)
+    min_area : int
+        Smallest component kept, pixels.
+    connectivity : {1, 2}
+        4-connected (1) or 8-connected (2) components (scikit-image's convention).
+    border : bool
+        Also keep every component that touches the edge of ``mask`` (it may go
+        on outside, where its size is unknown).
+
+    Returns
+    -------
+    ndarray of bool, shape (H, W)
+    """
+    labels, n = measure.label(mask, connectivity=connectivity, return_num=True)
+    keep = np.bincount(labels.ravel(), minlength=n + 1) >= min_area
+    if border:
+        keep[np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])] = True
+    keep[0] = False
+    return keep[labels]
+
+
 def fill_holes(mask, *, params=ChangeParams()):
     """Fill holes smaller than ``min_area`` inside changes: 4-connected background
     regions enclosed by one 8-connected change (background that reaches the
     border of ``mask`` is not a hole).  Works object by object, on bounding boxes,
-    so its cost follows the changes rather than the window."""
+    so its cost follows the changes rather than the window.  (skimage's
+    ``image_filled`` fills only what 8-connected background cannot leave; a hole
+    here is 4-connected, so a diagonal gap closes it.)"""
     out = mask.copy()
     if params.min_area <= 1 or not mask.any():
         return out
-    labels, _ = ndimage.label(mask, structure=np.ones((3, 3), bool))
-    for i, box in enumerate(ndimage.find_objects(labels), 1):
-        box = tuple(slice(max(b.start - 1, 0), b.stop + 1) for b in box)
-        holes = ndimage.binary_fill_holes(labels[box] == i) & ~mask[box]
+    for region in measure.regionprops(measure.label(mask, connectivity=2)):
+        holes = ndimage.binary_fill_holes(region.image) & ~mask[region.slice]
         if holes.any():
-            pieces, _ = ndimage.label(holes)
-            small = np.bincount(pieces.ravel()) < params.min_area
-            small[0] = False
-            out[box] |= small[pieces]
+            out[region.slice] |= holes & ~large_components(holes, params.min_area, connectivity=1)
     return out
 
 

@@ -29,6 +29,7 @@ from scipy import ndimage
 
 from .._oracle import _huber_loss, optimal_chi
 from .._timing import StageClock
+from ..changes._changes import large_components
 from ._propagate import _px_per_unit
 from ._rowproblem import _centroid, _RowProblem, _shift_margin, _Solver, _spread
 from ._start import _adapted_half_width
@@ -145,14 +146,10 @@ def _ty_half_width(params):
 def _outliers(reg, threshold, min_area):
     """Candidate changes (components of at least ``min_area`` pixels) grown by :data:`RIM_PX`."""
     candidates = (np.abs(reg.chi) > threshold) & reg.valid
-    labels, count = ndimage.label(candidates, structure=np.ones((3, 3)))
-    if count == 0:
+    if not candidates.any():
         return candidates
-    area = np.bincount(labels.ravel())
-    big = area >= min_area
-    big[0] = False
     size = 2 * RIM_PX + 1
-    return ndimage.binary_dilation(big[labels], structure=np.ones((size, size), bool))
+    return ndimage.binary_dilation(large_components(candidates, min_area), structure=np.ones((size, size), bool))
 
 
 def _blur_spread(reg, clean, dims):

@@ -390,3 +390,88 @@ def test_model_values_are_the_registered_image_anywhere():
     assert np.isfinite(model[fitted]).mean() > 0.999
     both = fitted & np.isfinite(model)
     np.testing.assert_allclose(model[both], reg.registered[both], atol=1e-5)
+
+
+# ------------------------------------------- scikit-image against the scipy versions it replaced
+
+
+def _old_label_components(mask, score):
+    """label_components as it was before scikit-image (scipy.ndimage)."""
+    from scipy import ndimage
+
+    labels, n = ndimage.label(mask, structure=np.ones((3, 3), bool))
+    labels = labels.astype(np.int32)
+    area = np.bincount(labels.ravel(), minlength=n + 1).astype(np.int64)
+    peak = np.zeros(n + 1, dtype=np.float32)
+    if n:
+        np.maximum.at(peak, labels.ravel(), np.nan_to_num(np.asarray(score, np.float32)).ravel())
+    peak[0] = 0.0
+    return labels, area, peak
+
+
+def _old_fill_holes(mask, min_area):
+    """fill_holes as it was: object by object, scipy.ndimage.binary_fill_holes."""
+    from scipy import ndimage
+
+    out = mask.copy()
+    if min_area <= 1 or not mask.any():
+        return out
+    labels, _ = ndimage.label(mask, structure=np.ones((3, 3), bool))
+    for i, box in enumerate(ndimage.find_objects(labels), 1):
+        box = tuple(slice(max(b.start - 1, 0), b.stop + 1) for b in box)
+        holes = ndimage.binary_fill_holes(labels[box] == i) & ~mask[box]
+        if holes.any():
+            pieces, _ = ndimage.label(holes)
+            small = np.bincount(pieces.ravel()) < min_area
+            small[0] = False
+            out[box] |= small[pieces]
+    return out
+
+
+def _random_masks():
+    """Masks with many components, nested rings and holes of every size,
+    touching the borders: smoothed noise at a few levels, seeded."""
+    from scipy import ndimage
+
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        field = ndimage.gaussian_filter(rng.standard_normal((157, 203)), 1.5 + seed)
+        for level in (-0.05, 0.0, 0.08):
+            yield field > level * field.std() * 10, np.abs(field).astype(np.float32)
+
+
+def test_label_components_and_fill_holes_equal_the_scipy_versions():
+    from rsmb.ops import fill_holes, label_components
+
+    count = 0
+    for mask, score in _random_masks():
+        new, old = label_components(mask, score), _old_label_components(mask, score)
+        for a, b in zip(new, old):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+        count += len(new[1]) - 1
+        for min_area in (1, 5, 20, 97):
+            np.testing.assert_array_equal(fill_holes(mask, params=ChangeParams(min_area=min_area)),
+                                          _old_fill_holes(mask, min_area))
+    assert count > 100  # the masks had components to compare
+
+
+def test_large_components_keeps_by_area_connectivity_and_border():
+    from rsmb.ops import large_components
+
+    mask = np.zeros((12, 12), bool)
+    mask[0:2, 0:2] = True          # 4 px touching the border
+    mask[5:7, 5:7] = True          # 4 px inside
+    mask[7, 7] = True              # joins the inside square diagonally only
+    mask[9:12, 9:12] = True        # 9 px in the corner
+    np.testing.assert_array_equal(large_components(mask, 5), mask & ~_box(mask.shape, 0, 2))
+    np.testing.assert_array_equal(large_components(mask, 5, connectivity=1), _box(mask.shape, 9, 12))
+    np.testing.assert_array_equal(large_components(mask, 5, connectivity=1, border=True),
+                                  _box(mask.shape, 9, 12) | _box(mask.shape, 0, 2))
+    assert not large_components(np.zeros((4, 4), bool), 1).any()
+
+
+def _box(shape, lo, hi):
+    out = np.zeros(shape, bool)
+    out[lo:hi, lo:hi] = True
+    return out
