@@ -214,24 +214,25 @@ def _join(observed):
             for members in sorted(groups.values())]
 
 
-def _best(geometry, candidates):
-    """The candidate Change that ``geometry`` overlaps most, among those it matches, else None."""
-    matching = [c for c in candidates if _same(geometry, c.geometry)]
+def _best(geometry, candidates, tree):
+    """The Change of ``candidates`` (indexed by the STRtree ``tree``) that ``geometry`` overlaps most,
+    among those it matches by the rule, else None."""
+    near = [candidates[i] for i in tree.query(geometry, predicate="intersects")]
+    matching = [c for c in near if _same(geometry, c.geometry)]
     return max(matching, key=lambda c: (geometry.intersection(c.geometry).area, -c.change_id), default=None)
 
 
-def _take_in_night(changes, night, observations):
-    """Update ``changes`` (list of Change, in place and extended) with one night's ``observations``
-    ([(Footprint, [change geometry])]); returns the features of the night's layer."""
+def _continue(changes, joined, stamp):
+    """Each change of tonight ``joined`` continues the not-gone feature of ``changes`` it matches best,
+    or starts a new one (appended); returns the features seen tonight, updated."""
     import shapely
 
-    stamp = night_time(night)
-    joined = _join([(g, fp.capture) for fp, geoms in observations for g in geoms])
     active = [c for c in changes if c.status != "gone"]
-    seen, layer = {}, []
+    tree = shapely.STRtree(np.array([c.geometry for c in active], dtype=object))
+    seen = {}
     next_id = max((c.change_id for c in changes), default=0) + 1
     for geometry, captures in joined:
-        target = _best(geometry, active)
+        target = _best(geometry, active, tree)
         if target is None:
             target = Change(next_id, geometry, "new", stamp, stamp, 0, [])
             next_id += 1
@@ -243,20 +244,39 @@ def _take_in_night(changes, night, observations):
         target.nights_seen += 1
         target.last_seen = stamp
         target.status = "new" if target.first_seen == stamp else "persisting"
-        layer.append(target)
-    coverage = shapely.union_all([fp.geometry for fp, _ in observations])
-    tonight = shapely.union_all([g for g, _ in joined]) if joined else shapely.Polygon()
-    for change in active:
-        if change.change_id in seen:
+    return [target for target, _ in seen.values()]
+
+
+def _not_seen(changes, seen, coverage, tonight, stamp):
+    """The not-gone features of ``changes`` not ``seen`` tonight: ``gone`` where ``coverage`` holds
+    COVERED of them and no change of ``tonight`` touches them, else ``unobserved``; returns the gone."""
+    gone, seen = [], {c.change_id for c in seen}
+    for change in changes:
+        if change.status == "gone" or change.change_id in seen:
             continue
         area = change.geometry.area
         covered = area > 0 and change.geometry.intersection(coverage).area >= COVERED * area
         if covered and not change.geometry.intersects(tonight):
             change.status, change.gone_since = "gone", stamp
-            layer.append(change)
+            gone.append(change)
         else:
             change.status = "unobserved"
-    return [replace(c) for c in sorted(layer, key=lambda c: c.change_id)]
+    return gone
+
+
+def _take_in_night(changes, night, observations):
+    """Update ``changes`` (list of Change, in place and extended) with one night's ``observations``
+    ([(Footprint, [change geometry])]); returns the features of the night's layer (copies)."""
+    import shapely
+
+    stamp = night_time(night)
+    joined = _join([(g, fp.capture) for fp, geoms in observations for g in geoms])
+    before = [c for c in changes if c.status != "gone"]
+    seen = _continue(changes, joined, stamp)
+    coverage = shapely.union_all([fp.geometry for fp, _ in observations])
+    tonight = shapely.union_all([g for g, _ in joined]) if joined else shapely.Polygon()
+    gone = _not_seen(before, seen, coverage, tonight, stamp)
+    return [replace(c) for c in sorted(seen + gone, key=lambda c: c.change_id)]
 
 
 # ----------------------------------------------------------------------- the file

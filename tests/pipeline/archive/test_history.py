@@ -68,8 +68,33 @@ def three_nights(tmp_path_factory):
     return root, histories
 
 
-def test_rules_are_the_documented_constants():
-    assert 0 < MIN_OVERLAP < 1 and 0 < COVERED <= 1
+def test_the_matching_rule_is_a_share_of_the_smaller_polygon():
+    """Two 20 x 20 boxes offset along x share (20 - dx) / 20 of either: one change when that share is
+    at least MIN_OVERLAP, two otherwise; a box inside a larger one is the same change."""
+    from rsmb.pipeline.archive._history import _join, _same
+
+    box = shapely.box(0, 0, 20, 20)
+    just_in = 20 * (1 - MIN_OVERLAP) - 0.5
+    just_out = 20 * (1 - MIN_OVERLAP) + 0.5
+    assert _same(box, shapely.box(just_in, 0, just_in + 20, 20))
+    assert not _same(box, shapely.box(just_out, 0, just_out + 20, 20))
+    assert _same(box, shapely.box(5, 5, 8, 8)) and not _same(box, shapely.box(30, 0, 40, 10))
+    joined = _join([(box, "p"), (shapely.box(just_in, 0, just_in + 20, 20), "q"),
+                    (shapely.box(just_out + 40, 0, just_out + 60, 20), "q")])
+    assert [c for _, c in joined] == [["p", "q"], ["q"]]
+
+
+def test_a_change_half_covered_and_not_seen_is_unobserved_not_gone(tmp_path):
+    """COVERED of a feature's area must be covered for "not seen" to mean "gone"."""
+    (tmp_path / "out").mkdir()
+    _night(tmp_path, NIGHTS[0])
+    update_history(tmp_path / "out", done_rows(tmp_path / "out"), NIGHTS[0], CRS)
+    folder, capture = tmp_path / "out" / "captures" / "f", tmp_path / "incoming" / "f.tif"
+    # columns 0..31 with a 2-px no-evidence frame: X (columns 20..39) is covered on columns 20..29 only
+    write_capture_folder(folder, capture, (0, 0), (128, 32), [])
+    record_done(tmp_path / "out", capture, folder, NIGHTS[1])
+    history = update_history(tmp_path / "out", done_rows(tmp_path / "out"), NIGHTS[1], CRS)
+    assert 0.4 < 10 / 20 < COVERED and _by_box(history, X).status == "unobserved"
 
 
 def test_one_change_seen_by_two_overlapping_captures_is_one_feature(three_nights):
