@@ -26,6 +26,7 @@ from ._io import (
     write_geotiff,
 )
 from ._json import jsonable
+from ._lock import FileLock, LockBusy, LockError, acquire_lock
 from ._luminance import as_float01
 from ._products import ChangePolygon, change_polygons, write_changes_gpkg, write_cog
 from ._stitch import TileLabels, merge_tile_labels
@@ -88,4 +89,8 @@ __all__ = [
     "swap_into_place",
     "update_attrs",
     "jsonable",
+    "FileLock",
+    "LockBusy",
+    "LockError",
+    "acquire_lock",
 ]

@@ -383,11 +383,29 @@ class Ledger:
             if cursor.rowcount != 1:
                 raise ParameterError(f"run_id: expected a running attempt of {self.path}, got {run_id}")
 
+    def amend(self, run_id: int, *, outputs: Mapping[str, Any]) -> None:
+        """Replace the outputs recorded for attempt ``run_id`` (its folder moved)."""
+        with self._transaction():
+            self._conn.execute("UPDATE runs SET outputs = ? WHERE id = ?",
+                               (json.dumps(dict(outputs), sort_keys=True), int(run_id)))
+
+    def undo_done(self, capture: str, reason: str) -> None:
+        """Mark every done attempt of ``capture`` failed with ``reason``: its
+        outputs are gone, so it runs again (a retry) however its key compares."""
+        with self._transaction():
+            self._conn.execute("UPDATE runs SET status = 'failed', reason = ? WHERE capture = ? AND status = 'done'",
+                               (_one_line(reason), capture))
+
     # -- listings
 
-    def runs(self, *, capture: str | None = None, night: str | None = None) -> list[LedgerRow]:
-        """Attempts in the order they started, optionally of one capture or one night."""
+    def runs(self, *, capture: str | None = None, night: str | None = None,
+             status: str | None = None) -> list[LedgerRow]:
+        """Attempts in the order they started, optionally of one capture, one
+        night or one status."""
         where, args = [], []
+        if status is not None:
+            where.append("status = ?")
+            args.append(status)
         if capture is not None:
             where.append("capture = ?")
             args.append(capture)
@@ -422,18 +440,11 @@ def _changes(previous: LedgerRow, run_key: RunKey) -> str:
 
 
 def _lock(path: Path):
-    """An exclusive, non-blocking lock on ``<path>.lock``: one driver per ledger."""
-    try:
-        import fcntl
-    except ImportError:  # no flock (Windows): rely on the documented rule
-        return None
+    """An exclusive, non-blocking lock on ``<path>.lock``: one driver per
+    ledger (:func:`rsmb.tiles.acquire_lock`: contention says "in use", any
+    other failure says what it is)."""
+    from rsmb.tiles._lock import acquire_lock
+
     if not path.parent.is_dir():
         raise InputError(f"{path.parent}: no such directory for the ledger")
-    handle = open(f"{path}.lock", "a+")
-    try:
-        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        handle.close()
-        raise InputError(f"{path}: in use by another rsmb survey (only one driver writes a ledger)") \
-            from None
-    return handle
+    return acquire_lock(f"{path}.lock", what="rsmb survey")

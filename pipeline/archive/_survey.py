@@ -6,11 +6,19 @@ glob finds are paired with the reference set by footprint and run through
 night, so the cores stay busy while a capture finishes its tail; a capture's
 products and report are written outside the ``parallel`` captures being
 detected, so the next capture's tasks run meanwhile).  Per capture,
-under ``OUT_DIR/<path relative to the glob's fixed prefix, no suffix>/``:
-``changes.zarr``, ``changes.gpkg`` (layer ``changes``), the masks and score as
-Cloud-Optimised GeoTIFFs, ``thumbnail.png`` and ``report/``.  A folder is built
-under ``OUT_DIR/.partial/`` and renamed into place, so it appears complete or
-not at all.  The ledger (:mod:`pipeline.archive._ledger`), written by this driver only,
+under ``OUT_DIR/captures/<path relative to the glob's fixed prefix>/`` (the
+capture's file name, suffix included, is its folder's: names mirror the
+captures' tree, where no file holds another, so ``a.tif`` and ``a/b.tif``,
+``a.tif`` and ``a.png``, or a capture named like the survey's own
+``nights/``, cannot share a folder): ``changes.zarr``, ``changes.gpkg``
+(layer ``changes``), the masks and score as Cloud-Optimised GeoTIFFs,
+``thumbnail.png`` and ``report/``.  A folder is built under
+``OUT_DIR/.partial/`` and renamed into place, so it appears complete or not
+at all.  The driver holds the survey's lock (``ledger.sqlite.lock``) before it
+touches anything in ``OUT_DIR``: a second night on the folder is refused and
+changes nothing.  A folder of the earlier layout (capture folders beside the
+ledger, without suffix) is moved into this one on first use
+(:func:`_migrate_layout`).  The ledger (:mod:`pipeline.archive._ledger`), written by this driver only,
 decides what runs: a capture done with the same key is skipped, a failed one
 retried, a changed one redone.  One bad capture never stops the night: it is
 ``failed`` with a one-line reason and the others finish.
@@ -45,6 +53,8 @@ __all__ = ["SurveyResult", "CaptureResult", "survey", "find_captures", "check_ou
 log = logging.getLogger("rsmb")
 
 PARTIAL = ".partial"
+#: The folder of the captures' folders inside a survey's folder.
+CAPTURES = "captures"
 #: Default tile side of a survey: a capture of about a megapixel is one tile,
 #: so it pays the per-tile start once; the night's concurrency, not the tiles
 #: of one capture, keeps the cores busy.
@@ -121,29 +131,21 @@ def _fixed_prefix(pattern):
 
 def find_captures(pattern, out_dir):
     """Files the glob ``pattern`` finds (``**`` recurses), sorted, outside
-    ``out_dir``: a list of (absolute path, folder name relative to the
-    pattern's fixed prefix, without suffix)."""
+    ``out_dir``: a list of (absolute path, its path relative to the
+    pattern's fixed prefix, suffix kept: the name of its folder under
+    ``OUT_DIR/captures/``).  A file is outside ``out_dir`` by its resolved
+    path (symlinks and ``..`` followed): a survey never takes its own
+    products for captures, however the glob reaches them."""
     prefix = _fixed_prefix(pattern).absolute()
-    out = Path(out_dir).absolute()
+    out = Path(out_dir).resolve()
     found = []
     for name in sorted(glob.glob(os.fspath(pattern), recursive=True)):
         path = Path(name).absolute()
-        if not path.is_file() or out in path.parents:
+        real = path.resolve()
+        if not path.is_file() or real == out or out in real.parents:
             continue
-        found.append((path, path.relative_to(prefix).with_suffix("")))
+        found.append((path, Path(os.path.relpath(path, prefix))))
     return found
-
-
-def _collisions(found):
-    """Captures whose folder name an earlier capture already has (a.tif and
-    a.png in one directory): capture -> the capture it collides with."""
-    first, out = {}, {}
-    for capture, name in found:
-        if name in first:
-            out[capture] = first[name]
-        else:
-            first[name] = capture
-    return out
 
 
 def _check_invocation(references, captures, out_dir, scheduler):
@@ -172,10 +174,16 @@ def check_output(out_dir, *, option="-o"):
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: {option} must be a directory, this is a file")
-    if out.is_dir() and not (out / LEDGER_NAME).exists() and any(out.iterdir()):
+    if out.is_dir() and not _is_survey(out) and any(out.iterdir()):
         raise InputError(f"{out}: {option} is a folder of other files, not a survey's (no {LEDGER_NAME}); give a "
                          f"new or empty folder, or the folder of earlier nights")
     tiles.check_writable(out / LEDGER_NAME)
+
+
+def _is_survey(out):
+    """A survey's folder: it holds the ledger, or the lock a night takes
+    before creating it."""
+    return (out / LEDGER_NAME).exists() or (out / f"{LEDGER_NAME}.lock").exists()
 
 
 def _parameters(config, shape=None):
@@ -241,8 +249,9 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
     if dry_run:
         return _dry_run(found, out, references, reference_shas, config)
     out.mkdir(parents=True, exist_ok=True)
-    shutil.rmtree(out / PARTIAL, ignore_errors=True)  # folders a killed night left half-built
-    with Ledger(out / LEDGER_NAME) as ledger:
+    with Ledger(out / LEDGER_NAME) as ledger:  # its lock first: nothing in the folder is touched before
+        shutil.rmtree(out / PARTIAL, ignore_errors=True)  # folders a killed night left half-built
+        _migrate_layout(out, ledger)
         results = _night(ledger, found, out, references, reference_shas, night, config,
                          dict(scheduler=scheduler, workers=workers, parallel=parallel,
                               worker_timeout=worker_timeout, report=report))
@@ -273,7 +282,8 @@ def _dry_run(found, out, references, reference_shas, config):
             key = _key(capture, references, reference_shas, config)
             decision = ledger.decide(str(capture), key) if ledger else None
             action, reason = (decision.action, decision.reason) if decision else ("run", "new capture")
-            results.append(CaptureResult(str(capture), f"would {action}", reason, output=str(out / name)))
+            results.append(CaptureResult(str(capture), f"would {action}", reason,
+                                         output=str(out / CAPTURES / name)))
         except RSMBError as exc:
             results.append(CaptureResult(str(capture), "would run", f"and fail: {one_line(exc)}"))
     if ledger:
@@ -285,16 +295,11 @@ def _night(ledger, found, out, references, reference_shas, night, config, run):
     """Decide every capture, run those to run (:func:`_run_all`), record each
     in the ledger as it ends.  Returns CaptureResults in the order found."""
     results, todo = {}, []
-    collisions = _collisions(found)
     for capture, name in found:
         try:
             key = _key(capture, references, reference_shas, config)
         except RSMBError as exc:  # unreadable: the ledger still hears of it
             key = RunKey.build("unreadable", reference_shas, references, _parameters(config), VERSION)
-            results[capture] = _fail(ledger, ledger.start(str(capture), key, night=night), capture, exc, 0.0)
-            continue
-        if capture in collisions:
-            exc = InputError(f"{capture}: its folder {name} is already {collisions[capture]}'s; rename one")
             results[capture] = _fail(ledger, ledger.start(str(capture), key, night=night), capture, exc, 0.0)
             continue
         decision = ledger.decide(str(capture), key)
@@ -359,11 +364,11 @@ def _run_capture(capture, name, out, references, config, runner, report, slots):
     header = tiles.probe_header(capture)[1]
     if not tiles.is_georeferenced(header):
         raise InputError(f"{capture}: not georeferenced (a survey pairs captures with the reference by footprint)")
-    aside = out / PARTIAL / name
+    aside = out / PARTIAL / "building" / name
     shutil.rmtree(aside, ignore_errors=True)
     aside.mkdir(parents=True)
     try:
-        folder = out / name
+        folder = out / CAPTURES / name
         features, read = _build(capture, aside, folder, references, config, runner, report, slots)
         folder.parent.mkdir(parents=True, exist_ok=True)
         tiles.swap_into_place(aside, folder, overwrite=True)  # a capture redone replaces its folder
@@ -408,3 +413,53 @@ def _write_night(out, result):
     tmp.write_text(json.dumps(result.as_dict(), indent=2))
     os.replace(tmp, path)
     return path
+
+
+#: Names of a survey's own files and folders: a capture folder of the old
+#: layout that took one of them (``nights.tif`` -> ``nights/``) is not moved.
+_OWN = {"nights", "index.html", LEDGER_NAME, CAPTURES, PARTIAL, "stac", "changes.gpkg", "map.png"}
+
+
+def _migrate_layout(out, ledger):
+    """Move the capture folders of the earlier layout (``OUT_DIR/<path, no
+    suffix>/``) to ``OUT_DIR/captures/<path with the capture's suffix>/`` and
+    record the new paths in the ledger.  Idempotent and cheap when there is
+    nothing to move (one query).  A done capture whose old folder is missing,
+    nested in a survey's own folder (``nights/`` ...) or whose new place is
+    taken is marked failed (reason says so): it is redone tonight."""
+    moved = 0
+    latest = {r.capture: r for r in ledger.runs(status="done")}  # the done attempt a skip is decided by
+    old = [(r, Path(r.outputs["output"])) for r in latest.values()
+           if r.outputs.get("output") and not Path(r.outputs["output"]).is_relative_to(out / CAPTURES)]
+    # deepest first: a/b's folder leaves a/ before a/ moves
+    for row, folder in sorted(old, key=lambda item: -len(item[1].parts)):
+        if not folder.is_relative_to(out) or folder == out:
+            continue  # the survey folder was moved since: its paths are not ours to rewrite
+        relative = folder.relative_to(out)
+        target = out / CAPTURES / relative.with_name(relative.name + Path(row.capture).suffix)
+        if relative.parts[0] in _OWN or not (folder / "changes.zarr").is_dir() or target.exists():
+            ledger.undo_done(row.capture, f"not moved to the layout of {CAPTURES}/ (its old folder {relative} "
+                                          f"is missing, a survey's own or its new place taken): redo")
+            continue
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(folder, target)
+        parent = folder.parent
+        while parent != out and not any(parent.iterdir()):  # the old tree's emptied folders leave too
+            parent.rmdir()
+            parent = parent.parent
+        outputs = {**row.outputs, "output": str(target), "vectors": str(target / "changes.gpkg")}
+        ledger.amend(row.id, outputs=outputs)
+        _restamp_store(target / "changes.zarr")
+        moved += 1
+    if moved:
+        log.info("survey: %d capture folder(s) moved to %s/ (the layout where names cannot collide)", moved,
+                 out / CAPTURES)
+
+
+def _restamp_store(store):
+    """The store's summary names where it lives now."""
+    try:
+        summary = dict(tiles.open_result_store(store).attrs.get("summary", {}))
+        tiles.update_attrs(store, {"summary": {**summary, "output": str(store)}})
+    except Exception:  # noqa: BLE001 - a store that cannot be read still moved; its report says where it was
+        log.warning("survey: %s: could not record its new place in the store", store)

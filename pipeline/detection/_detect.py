@@ -31,6 +31,7 @@ import functools
 import logging
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -270,6 +271,30 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff):
              result.megapixels_per_s)
 
 
+@contextlib.contextmanager
+def _store_lock(output):
+    """The exclusive lock of the store ``output``: ``<output>.lock`` beside
+    it, held for the run and removed after (:func:`rsmb.tiles.acquire_lock`).
+    Another run on the same store is refused, not raced.  Folders made for
+    the lock file are removed again when the run fails before it wrote."""
+    tiles.check_writable(output)
+    parent, made = Path(output).parent, []
+    while not parent.exists():
+        made.append(parent)
+        parent = parent.parent
+    Path(output).parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with tiles.acquire_lock(f"{output}.lock", what="rsmb detect", remove=True) or contextlib.nullcontext():
+            yield
+    except BaseException:
+        for folder in made:  # innermost first; a folder the run filled stays
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+        raise
+
+
 def detect(reference, distorted, output, *, config=None, scheduler="threads", workers=None, overwrite=False,
            resume=False, geotiff=None, runner=None, worker_timeout=60.0):
     """Register ``distorted`` against ``reference`` and write the change store.
@@ -331,51 +356,52 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
         if done is not None:
             return DetectResult(**done)
     check_scheduler(scheduler)
-    _check_outputs(output, geotiff, overwrite)
-    group = tiles.create_result_store(output, _specs(plan.grid, len(plan.params.trajectory_axes), plan.margin),
-                                      {"run_key": plan.key}, overwrite=overwrite, resume=resume)
-    store = str(tiles.partial_path(output))
-    run = _tasks.RunStore(store, plan.key, plan.margin)
-    if resume and group.attrs.get("run_key") != plan.key:
-        raise InputError(f"{output}: the interrupted run had other inputs or parameters; run without --resume")
-    timings = {}
-    try:
-        own = open_runner(scheduler, workers=workers, worker_timeout=worker_timeout) if runner is None else None
-        with own or contextlib.nullcontext(runner) as shared:
-            runner = _Counted(shared)
-            shape, grid = plan.shape, plan.grid
-            log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", plan.distorted.path, shape[0],
-                     shape[1], len(grid), grid.tile, grid.halo, scheduler)
-            run = _ingest(runner, group, run, plan, timings)
-            slow_stage(runner, group, run, plan, timings)
-            plan = plan.for_rows(group["work/slow"][:])  # the halo the rows need, the slow part known
-            if plan.grid.halo != grid.halo:
-                log.info("halo %d px for the rows (the slow part found needs no more)", plan.grid.halo)
-            grid = plan.grid
-            tile_stages = _register_tiles(runner, group, run, plan, resume, timings)
-            fused, hist, gains, agree, resolve = _fuse_paths(runner, group, run, plan, timings)
-            threshold, changed, components = _change_masks(runner, run, plan, fused, hist, timings)
-            tasks_per_tile = runner.tasks / len(grid)
-            timings["cpu_s"] = _cpu_stages(runner, tile_stages)
-        timings["total_s"] = time.perf_counter() - t_start
-        result = DetectResult(
-            output=str(output), shape=list(shape), tiles=list(grid.grid_shape), tile_size=grid.tile,
-            halo=grid.halo, threshold=threshold, changed_pixels=int(changed),
-            changed_fraction=changed / float(shape[0] * shape[1]), components=components,
-            gain_min=float(np.nanmin(gains)), gain_max=float(np.nanmax(gains)),
-            resolved_tiles=[list(t) for t in resolve],
-            tile_agreement_px_max=float(np.nanmax(agree)) if np.isfinite(agree).any() else None,
-            tasks_per_tile=tasks_per_tile, megapixels_per_s=shape[0] * shape[1] / 1e6 / timings["total_s"],
-            timings=timings, pairing=plan.pairing.mode,
-            reference_coverage=None if plan.pairing.coverage is None else plan.pairing.coverage.fraction,
-            failed_rows=int((group["tile_row_state"][:] == 3).sum()),
-            clipped_reference=run.intensity.reference_clipped, clipped_capture=run.intensity.capture_clipped,
-            parallax_components=len(_tasks.layer_components(group)),
-            parallax_pixels=int(sum(c["pixels"] for c in _tasks.layer_components(group))))
-        _finish(group, store, plan, result, scheduler, overwrite, geotiff)
-        return result
-    except BaseException as error:
-        # an interruption keeps what a --resume can continue; unusable inputs do not
-        if isinstance(error, InputError) or not _tasks.resume_safe(group):
-            tiles.abort_result_store(store)
-        raise
+    with _store_lock(output):  # held for the run: nothing of the output is touched before
+        _check_outputs(output, geotiff, overwrite)  # (it repairs an overwrite a killed run left half-done)
+        group = tiles.create_result_store(output, _specs(plan.grid, len(plan.params.trajectory_axes), plan.margin),
+                                          {"run_key": plan.key}, overwrite=overwrite, resume=resume)
+        store = str(tiles.partial_path(output))
+        run = _tasks.RunStore(store, plan.key, plan.margin)
+        if resume and group.attrs.get("run_key") != plan.key:
+            raise InputError(f"{output}: the interrupted run had other inputs or parameters; run without --resume")
+        timings = {}
+        try:
+            own = open_runner(scheduler, workers=workers, worker_timeout=worker_timeout) if runner is None else None
+            with own or contextlib.nullcontext(runner) as shared:
+                runner = _Counted(shared)
+                shape, grid = plan.shape, plan.grid
+                log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", plan.distorted.path, shape[0],
+                         shape[1], len(grid), grid.tile, grid.halo, scheduler)
+                run = _ingest(runner, group, run, plan, timings)
+                slow_stage(runner, group, run, plan, timings)
+                plan = plan.for_rows(group["work/slow"][:])  # the halo the rows need, the slow part known
+                if plan.grid.halo != grid.halo:
+                    log.info("halo %d px for the rows (the slow part found needs no more)", plan.grid.halo)
+                grid = plan.grid
+                tile_stages = _register_tiles(runner, group, run, plan, resume, timings)
+                fused, hist, gains, agree, resolve = _fuse_paths(runner, group, run, plan, timings)
+                threshold, changed, components = _change_masks(runner, run, plan, fused, hist, timings)
+                tasks_per_tile = runner.tasks / len(grid)
+                timings["cpu_s"] = _cpu_stages(runner, tile_stages)
+            timings["total_s"] = time.perf_counter() - t_start
+            result = DetectResult(
+                output=str(output), shape=list(shape), tiles=list(grid.grid_shape), tile_size=grid.tile,
+                halo=grid.halo, threshold=threshold, changed_pixels=int(changed),
+                changed_fraction=changed / float(shape[0] * shape[1]), components=components,
+                gain_min=float(np.nanmin(gains)), gain_max=float(np.nanmax(gains)),
+                resolved_tiles=[list(t) for t in resolve],
+                tile_agreement_px_max=float(np.nanmax(agree)) if np.isfinite(agree).any() else None,
+                tasks_per_tile=tasks_per_tile, megapixels_per_s=shape[0] * shape[1] / 1e6 / timings["total_s"],
+                timings=timings, pairing=plan.pairing.mode,
+                reference_coverage=None if plan.pairing.coverage is None else plan.pairing.coverage.fraction,
+                failed_rows=int((group["tile_row_state"][:] == 3).sum()),
+                clipped_reference=run.intensity.reference_clipped, clipped_capture=run.intensity.capture_clipped,
+                parallax_components=len(_tasks.layer_components(group)),
+                parallax_pixels=int(sum(c["pixels"] for c in _tasks.layer_components(group))))
+            _finish(group, store, plan, result, scheduler, overwrite, geotiff)
+            return result
+        except BaseException as error:
+            # an interruption keeps what a --resume can continue; unusable inputs do not
+            if isinstance(error, InputError) or not _tasks.resume_safe(group):
+                tiles.abort_result_store(store)
+            raise

@@ -104,7 +104,7 @@ def test_bad_captures_fail_and_the_rest_finish(first_night, capsys):
     assert "not georeferenced" in status["nogeo.tif"]["reason"]
     assert "constant" in status["flat.tif"]["reason"]
     assert "cannot read" in status["truncated.tif"]["reason"]
-    assert not (out / "flight2").exists() and not (out / ".partial").exists()
+    assert not (out / "captures" / "flight2").exists() and not (out / ".partial").exists()
 
 
 def test_each_capture_folder_holds_its_products(first_night):
@@ -112,7 +112,7 @@ def test_each_capture_folder_holds_its_products(first_night):
     import rasterio
 
     night, out = first_night.night, first_night.out
-    folder = out / "flight1" / "cap1"
+    folder = out / "captures" / "flight1" / "cap1.tif"
     assert sorted(p.name for p in folder.iterdir()) == ["change_mask.tif", "change_mask_reference.tif",
                                                        "change_score.tif", "changes.gpkg", "changes.zarr", "report",
                                                        "thumbnail.png"]
@@ -149,7 +149,7 @@ def test_the_products_are_the_stores_kept_components(first_night):
 
     out, night = first_night.out, first_night.night
     for name in ("cap0", "cap1", "cap2", "cap3"):
-        folder = out / "flight1" / name
+        folder = out / "captures" / "flight1" / f"{name}.tif"
         arrays, attrs = read_store(folder / "changes.zarr")
         unknown = ~np.isfinite(arrays["registered"])
         assert unknown.any() == (name == "cap3")  # cap3 overhangs the reference
@@ -180,7 +180,7 @@ def test_the_index_lists_every_capture_with_its_thumbnail(first_night):
     for capture in sorted(first_night.night.rglob("*.tif")):
         name = capture.relative_to(first_night.night).as_posix()
         assert f"<code>{name}</code>" in page and page.count(str(capture)) == 1, name
-    assert page.count("<img src='flight1/cap") == 4 and "http" not in page
+    assert page.count("<img src='captures/flight1/cap") == 4 and "http" not in page
     assert "table-layout:fixed" in page and "overflow-wrap:anywhere" in page
 
 
@@ -218,7 +218,7 @@ def test_a_rerun_redoes_nothing(first_night):
     every command whatever the night holds, are outside both.  The rerun starts
     with no file checksum remembered, as a new command would."""
     out = first_night.out
-    stamps = {p: p.stat().st_mtime_ns for p in (out / "flight1").rglob("*") if p.is_file()}
+    stamps = {p: p.stat().st_mtime_ns for p in (out / "captures" / "flight1").rglob("*") if p.is_file()}
     _sources._sha256_file.cache_clear()
     start = time.perf_counter()
     assert main(first_night.args) == 3  # the bad ones are retried and fail again
@@ -226,7 +226,7 @@ def test_a_rerun_redoes_nothing(first_night):
     summary = _summary(out)
     assert summary["skipped"] == 4 and summary["done"] == 0 and summary["failed"] == 4
     assert all(c["output"] and c["changes"] is not None for c in summary["captures"] if c["status"] == "skipped")
-    assert stamps == {p: p.stat().st_mtime_ns for p in (out / "flight1").rglob("*") if p.is_file()}
+    assert stamps == {p: p.stat().st_mtime_ns for p in (out / "captures" / "flight1").rglob("*") if p.is_file()}
     assert seconds <= 0.2 * first_night.seconds, (seconds, first_night.seconds)
 
 

@@ -31,7 +31,7 @@ def test_the_nightly_example_runs(tmp_path):
     assert main(["-q", "run", str(path)]) == 0
     steps = json.loads((tmp_path / "nightly-example" / "nightly-example.summary.json").read_text())
     assert [s["status"] for s in steps] == ["done"] * len(steps) and steps[-1]["kind"] == "survey"
-    assert steps[-1]["result"]["done"] == 1 and (tmp_path / "nightly-example" / "survey" / "distorted").is_dir()
+    assert steps[-1]["result"]["done"] == 1 and (tmp_path / "nightly-example" / "survey" / "captures" / "distorted.tif").is_dir()
 
 
 def test_small_workflow_runs(tmp_path, monkeypatch):
@@ -189,7 +189,7 @@ def test_a_survey_step_fails_with_its_night_and_resumes_by_its_ledger(tmp_path, 
         {"survey": {"references": ["reference/mosaic_0.tif", "reference/mosaic_1.tif"], "captures": "incoming/*.tif",
                     "output": "night", "slow_axes": "none", "report": False}},
         # inside the survey's output, so written by it; the archive wrote each capture's truth beside it
-        {"evaluate": {"store": "night/cap0/changes.zarr", "truth": "incoming/cap0.truth"}},
+        {"evaluate": {"store": "night/captures/cap0.tif/changes.zarr", "truth": "incoming/cap0.truth"}},
     ]})
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
@@ -203,14 +203,14 @@ def test_a_survey_step_fails_with_its_night_and_resumes_by_its_ledger(tmp_path, 
     assert evaluate["status"] == "done" and evaluate["result"]["changes"]["f_measure"] > 0.8  # keep_going
     assert os.listdir(elsewhere) == []
     # the night again: done captures skipped, nothing rewritten; the truncated capture retried, fails again
-    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "night").glob("cap*/*.tif")}
+    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "night").glob("captures/cap*.tif/*.tif")}
     assert len(stamps) == 6
     assert main(["-q", "run", str(path)]) == 3
     (tmp_path / "incoming" / "truncated.tif").unlink()
     assert main(["-q", "run", str(path)]) == 0
     survey, evaluate = json.loads((tmp_path / "nightly.summary.json").read_text())
     assert survey["status"] == "done" and (survey["result"]["done"], survey["result"]["skipped"]) == (0, 2)
-    assert stamps == {p: p.stat().st_mtime_ns for p in (tmp_path / "night").glob("cap*/*.tif")}
+    assert stamps == {p: p.stat().st_mtime_ns for p in (tmp_path / "night").glob("captures/cap*.tif/*.tif")}
 
 
 def test_a_survey_step_is_checked_before_any_step_runs(tmp_path, capsys):

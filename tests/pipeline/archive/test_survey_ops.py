@@ -1,0 +1,214 @@
+"""Survey operations: two runs on one folder, a layout whose names cannot
+collide, the output folder kept out of the glob, the earlier layout moved."""
+
+import json
+import os
+import shutil
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rsmb import ops
+from rsmb.pipeline.bench._archive import CaptureSpec, write_capture, write_reference
+from rsmb.pipeline.cli import main
+
+SCENE_SHAPE = (512, 512)
+
+
+def _scene():
+    return (0.05 + 0.7 * ops.aerial_scene(SCENE_SHAPE, seed=7)).astype(np.float32)
+
+
+def _capture(path, scene, origin, seed):
+    write_capture(path, scene, CaptureSpec(origin, (160, 160), seed=seed, changes=2))
+
+
+def _args(references, pattern, out, *extra):
+    return ["-q", "survey", *map(str, references), "--captures", str(pattern), "-o", str(out), "--no-report",
+            "--tile-size", "160", *extra]
+
+
+def _tree(root):
+    """Every path under ``root`` with its size and modification time."""
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns) if p.is_file() else None
+            for p in sorted(root.rglob("*"))}
+
+
+def _wait_for(predicate, seconds=120.0):
+    deadline = time.time() + seconds
+    while not predicate():
+        if time.time() > deadline:
+            raise AssertionError("timed out")
+        time.sleep(0.05)
+
+
+def _summary(out):
+    return json.loads(sorted((out / "nights").glob("*.json"))[-1].read_text())
+
+
+@pytest.fixture(scope="module")
+def archive(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ops")
+    scene = _scene()
+    references = write_reference(root / "reference", scene, split=1)
+    return root, scene, references
+
+
+def test_a_second_survey_on_the_folder_changes_nothing(archive, tmp_path, capsys):
+    """The first night is frozen (SIGSTOP) while it builds a capture; a second
+    night on the same folder exits 2 with one line naming the lock, and the
+    folder is the same file for file (sizes and times); the first then
+    finishes every capture intact."""
+    _, scene, references = archive
+    night = tmp_path / "night"
+    for k, origin in enumerate(((60, 60), (200, 250), (300, 100))):
+        _capture(night / f"c{k}.tif", scene, origin, seed=40 + k)
+    out = tmp_path / "out"
+    args = _args(references, night / "*.tif", out, "--parallel", "1")
+    first = subprocess.Popen([sys.executable, "-m", "rsmb.pipeline.cli", *args], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE)
+    try:
+        _wait_for(lambda: (out / ".partial" / "building").exists() or first.poll() is not None)
+        first.send_signal(signal.SIGSTOP)
+        before = _tree(out)
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "ledger.sqlite.lock: in use by another rsmb survey" in err[0], err
+        assert _tree(out) == before
+    finally:
+        first.send_signal(signal.SIGCONT)
+    assert first.wait(timeout=300) == 0, first.stderr.read()
+    summary = _summary(out)
+    assert summary["done"] == 3 and summary["failed"] == 0
+    for k in range(3):
+        assert (out / "captures" / f"c{k}.tif" / "changes.gpkg").is_file()
+    assert not (out / ".partial").exists()
+
+
+def test_two_detect_runs_on_one_store(geotiff_pair_files, tmp_path, capsys):
+    """A second ``rsmb detect`` on a store being written exits 2 naming its
+    lock, leaves the running one's files as they are, and the first finishes;
+    the lock file leaves with the run."""
+    _, ref, dist = geotiff_pair_files
+    store = tmp_path / "out.zarr"
+    args = ["-q", "detect", str(ref), str(dist), "-o", str(store)]
+    first = subprocess.Popen([sys.executable, "-m", "rsmb.pipeline.cli", *args], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE)
+    try:
+        _wait_for(lambda: Path(f"{store}.partial").exists() or first.poll() is not None)
+        first.send_signal(signal.SIGSTOP)
+        before = _tree(tmp_path)
+        for extra in ([], ["--overwrite"]):
+            assert main(args + extra) == 2
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and "out.zarr.lock: in use by another rsmb detect" in err[0], err
+        assert _tree(tmp_path) == before
+    finally:
+        first.send_signal(signal.SIGCONT)
+    assert first.wait(timeout=300) == 0, first.stderr.read()
+    assert (store / "zarr.json").is_file() and not Path(f"{store}.partial").exists()
+    assert not Path(f"{store}.lock").exists()
+
+
+def test_names_that_nest_or_shadow_the_survey_cannot_collide(archive, tmp_path):
+    """a.tif and a/b.tif, nights.tif and index.tif each get their own folder
+    under captures/; changing a.tif redoes a.tif alone and the night history
+    stays."""
+    _, scene, references = archive
+    night = tmp_path / "night"
+    names = {"a.tif": (60, 60), "a/b.tif": (200, 250), "nights.tif": (300, 100), "index.tif": (100, 300)}
+    for k, (name, origin) in enumerate(names.items()):
+        _capture(night / name, scene, origin, seed=50 + k)
+    out = tmp_path / "out"
+    args = _args(references, night / "**" / "*.tif", out, "--json")
+    assert main(args) == 0
+    summary = _summary(out)
+    assert summary["done"] == 4
+    for name in names:
+        folder = out / "captures" / name
+        assert (folder / "changes.gpkg").is_file() and (folder / "change_mask.tif").is_file(), name
+    assert (out / "index.html").is_file() and len(list((out / "nights").glob("*.json"))) == 1
+    _capture(night / "a.tif", scene, (70, 60), seed=60)
+    time.sleep(0.01)
+    assert main(args) == 0
+    by = {Path(c["capture"]).relative_to(night).as_posix(): c["status"] for c in _summary(out)["captures"]}
+    assert by == {"a.tif": "done", "a/b.tif": "skipped", "nights.tif": "skipped", "index.tif": "skipped"}
+    assert (out / "captures" / "a" / "b.tif" / "changes.gpkg").is_file()
+    assert len(list((out / "nights").glob("*.json"))) == 2
+
+
+def test_the_output_folder_inside_the_captures_folder_is_never_a_capture(archive, tmp_path):
+    """The survey folder lies inside the captures' folder and the glob reaches
+    it through a symlink and through ``..``: its own COGs are not captures on
+    the next night."""
+    _, scene, references = archive
+    night = tmp_path / "night"
+    _capture(night / "c0.tif", scene, (60, 60), seed=70)
+    out = night / "survey"
+    (night / "link").symlink_to(out, target_is_directory=True)
+    assert main(_args(references, night / "**" / "*.tif", out)) == 0
+    for pattern in (night / "**" / "*.tif", night / "link" / ".." / "**" / "*.tif"):
+        assert main(_args(references, pattern, night / "link" / ".." / "survey", "--json")) == 0
+        summary = _summary(out)
+        assert [Path(c["capture"]).name for c in summary["captures"]] == ["c0.tif"], summary
+        assert summary["failed"] == 0
+
+
+def test_a_folder_of_the_earlier_layout_is_moved_on_first_use(archive, tmp_path):
+    """A survey folder whose capture folders sit beside the ledger, without
+    suffix (the layout before captures/), is moved on the next night: folders
+    under captures/ with the suffix, the ledger's outputs and the store's
+    summary follow, nothing is redone."""
+    _, scene, references = archive
+    night = tmp_path / "night"
+    _capture(night / "f" / "c0.tif", scene, (60, 60), seed=80)
+    _capture(night / "f" / "c0" / "c1.tif", scene, (200, 200), seed=81)
+    out = tmp_path / "out"
+    args = _args(references, night / "**" / "*.tif", out, "--json")
+    assert main(args) == 0
+    # make it the earlier layout: folders moved up, without suffix, nested; the ledger says so
+    db = sqlite3.connect(out / "ledger.sqlite")
+    (out / "f").mkdir()
+    os.replace(out / "captures" / "f" / "c0.tif", out / "f" / "c0")
+    os.replace(out / "captures" / "f" / "c0" / "c1.tif", out / "f" / "c0" / "c1")
+    shutil.rmtree(out / "captures")
+    for run_id, outputs in db.execute("SELECT id, outputs FROM runs").fetchall():
+        old = outputs.replace("/captures/f/c0.tif", "/f/c0").replace("/captures/f/c0/c1.tif", "/f/c0/c1")
+        db.execute("UPDATE runs SET outputs = ? WHERE id = ?", (old, run_id))
+    db.commit()
+    db.close()
+    assert main(args) == 0
+    summary = _summary(out)
+    assert summary["skipped"] == 2 and summary["done"] == 0
+    for name in ("f/c0.tif", "f/c0/c1.tif"):
+        folder = out / "captures" / name
+        assert (folder / "changes.gpkg").is_file(), name
+        attrs = json.loads((folder / "changes.zarr" / "zarr.json").read_text())["attributes"]
+        assert attrs["summary"]["output"] == str(folder / "changes.zarr")
+        assert [c["output"] for c in summary["captures"] if c["capture"].endswith(name)] == [str(folder)]
+    assert not (out / "f").exists()
+
+
+def test_a_lock_failure_that_is_not_contention_says_so(archive, tmp_path, capsys, monkeypatch):
+    """A file system without locks (NFS without lockd: ENOLCK) is exit 2 with
+    what happened, not "in use"."""
+    import errno
+    import fcntl
+
+    _, scene, references = archive
+    _capture(tmp_path / "night" / "c0.tif", scene, (60, 60), seed=90)
+
+    def flock(fd, op):
+        raise OSError(errno.ENOLCK, os.strerror(errno.ENOLCK))
+
+    monkeypatch.setattr(fcntl, "flock", flock)
+    assert main(_args(references, tmp_path / "night" / "*.tif", tmp_path / "out")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "ledger.sqlite.lock: cannot lock (No locks available" in err[0], err
+    assert "in use" not in err[0]
