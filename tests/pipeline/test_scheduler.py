@@ -115,6 +115,7 @@ def test_overlapping_runs_restore_the_callers_setting_when_the_last_ends(caller_
     if not _blas_threads():
         pytest.skip("no BLAS found in this process")
     runner = Runner("threads", workers=2, progress=False)
+    before = _blas_threads()
     with threadpool_limits(limits=caller_limit, user_api="blas"):
         caller = _blas_threads()
         with ThreadPoolExecutor(2) as driver:
@@ -127,7 +128,7 @@ def test_overlapping_runs_restore_the_callers_setting_when_the_last_ends(caller_
             with ThreadPoolExecutor(1) as other:  # the rsmb runs' threads left no hold on the setting
                 other.submit(threadpool_limits, limits=1, user_api="blas").result()
             assert set(_blas_threads().values()) == {1}
-    assert _blas_threads() == caller
+    assert _blas_threads() == before
 
 
 def test_worker_processes_run_one_blas_thread():
