@@ -191,7 +191,8 @@ def demo(out_dir, size, tile_size, scheduler, overwrite):
               help="Most pixels of a downsampled mosaic figure (the overlay PNG holds at most this many).")
 @click.option("--overwrite", is_flag=True, help="Write into an existing non-empty report directory.")
 def report(store, out_dir, max_pixels, overwrite):
-    """An HTML page with figures of one detect STORE: change overlay, trajectory, gain, tile agreement, score."""
+    """An HTML page with figures of one detect STORE: reference and capture side by side with the changes outlined,
+    change overlay, trajectory, gain, tile agreement, score."""
     from .report._report import write_report
 
     index = write_report(store, out_dir, max_pixels=max_pixels, overwrite=overwrite)

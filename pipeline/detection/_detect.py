@@ -47,6 +47,7 @@ from ._outputs import _check_outputs, _finished, write_products
 from ._overview import slow_stage
 from ._plan import VERSION, DetectConfig, DetectResult, _plan
 from .._scheduler import check_scheduler, open_runner
+from ..report._previews import write_previews
 
 __all__ = ["detect"]
 
@@ -261,6 +262,7 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff):
     group["trajectory"].attrs.update({"pose_axes": list(axes), "units": [ops.AXIS_UNITS[a] for a in axes]})
     for name in ("work", "ingest"):
         del group[name]
+    write_previews(group, plan.pairing)  # what the report shows of the inputs, which may not stay where they are
     final = tiles.finalize_result_store(store, plan.output, overwrite=overwrite)
     if geotiff is not None:
         # the reference-grid mask is on the reference's grid when compared pixel for pixel, else on the

@@ -1,26 +1,30 @@
 """``rsmb report``: an HTML page with figures describing one ``rsmb detect`` run.
 
 The page (``index.html``) is self-contained apart from the figure files next
-to it: no JavaScript, no network.  Figures:
+to it: no JavaScript, no network.  Figures (PNG; the photographs JPEG):
 
+``before_after.jpg``
+    The reference (before) and the capture (after) side by side, in colour
+    where the inputs have it, from the previews the store keeps
+    (:mod:`._previews`), the changes outlined on both.
 ``overlay.png``
     The change mask (red) and its outlines on the registered reference, tile
     grid drawn faintly; rendered pixel for pixel at the downsampled size, so
     the file never holds more than ``max_pixels`` pixels.
-``trajectory.svg``
+``trajectory.png``
     Per-row pose, one panel per axis: the fused path and each tile column's own;
     an axis that is zero on every row gets no panel, only a note (figure and
-    caption).  Vector lines and text, drawn by the browser.
-``gain.svg``, ``agreement.svg``
+    caption).
+``gain.png``, ``agreement.png``
     Per-tile maps with their values written in the cells (a store of more
     than one tile).
 ``change_score.png``
-    The change score, downsampled, one value per PNG pixel; the page draws it
-    in an SVG frame of axes and a colorbar with the threshold marked.
+    The change score, downsampled by block maximum, one value per square of
+    screen pixels, with a colorbar and the threshold marked.
 
 The figures and the block reduction that keeps them small are
-:mod:`._report_figures`, their SVG drawing :mod:`._report_svg`; the page is
-:mod:`._report_html`.
+:mod:`._report_figures`, drawn with matplotlib in :mod:`._report_plots`; the
+page is :mod:`._report_html`.
 """
 
 import logging
@@ -41,7 +45,7 @@ log = logging.getLogger("rsmb")
 DEFAULT_MAX_PIXELS = 2048 * 2048
 _REQUIRED = ("change_mask", "change_score", "registered", "trajectory", "gain")
 # written by earlier versions: removed on overwrite, not left to look current
-_OLD_FIGURES = ("trajectory.png", "gain.png", "agreement.png")
+_OLD_FIGURES = ("trajectory.svg", "gain.svg", "agreement.svg")
 
 
 # --------------------------------------------------------------------------- public

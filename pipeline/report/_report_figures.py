@@ -3,11 +3,9 @@ reduction that keeps them small.
 
 Large mosaics are reduced band by band straight from zarr (block mean for
 images, block maximum for the mask and the score so that small changes stay
-visible): one full-resolution array is never loaded whole.  The overlay and
-the score are PNGs rendered pixel for pixel at the downsampled size; the
-trajectory, the per-tile maps and the score's frame (axes, colorbar,
-threshold) are SVG text (:mod:`._report_svg`), drawn by the browser.
-Matplotlib only lends its colormaps.
+visible): one full-resolution array is never loaded whole.  The overlay is a
+PNG composed pixel for pixel at the downsampled size; the other figures are
+drawn with matplotlib (:mod:`._report_plots`).
 """
 
 import math
@@ -16,10 +14,8 @@ import numpy as np
 
 from rsmb.ops import ParameterError
 
-from ._report_svg import score_frame_svg, tile_map_svg, trajectory_svg
-
-FIGURES = ("overlay.png", "trajectory.svg", "gain.svg", "agreement.svg", "change_score.png")
-_SCORE_SIDE = 1024  # the score figure shows a value per PNG pixel (or a square of them), at most this many a side
+FIGURES = ("before_after.jpg", "overlay.png", "trajectory.png", "gain.png", "agreement.png", "change_score.png")
+_SCORE_SIDE = 1024  # the score figure shows a value per screen pixel (or a square of them), at most this many a side
 _TRAJECTORY_WIDTH = 1000  # px
 
 # overlay colours, RGB in [0, 1]
@@ -53,25 +49,31 @@ def write_figures(group, attrs, out, factor):
     Returns
     -------
     figures : dict
-        File name -> ``{"size": (width, height)}`` in pixels of the PNG or the
-        SVG's user space, and for the trajectory ``"flat_axes"``, the labels of
-        the pose axes that are zero on every row and have no panel; for the
-        score ``"vmax"``, ``"zoom"`` and its ``"frame"``, an ``<svg>`` element
-        for the page, of ``"frame_size"``.  ``agreement.svg`` is missing when
-        the store has no ``tile_agreement``, both it and ``gain.svg`` for a
-        store of one tile (its gain is in the summary; one tile agrees with
-        itself).
+        File name -> ``{"size": (width, height)}`` in pixels, and for the
+        trajectory ``"flat_axes"``, the labels of the pose axes that are zero
+        on every row and have no panel; for the score ``"vmax"`` and
+        ``"zoom"``.  ``before_after.jpg`` is missing for a store without input
+        previews (written before they were kept), ``agreement.png`` when the
+        store has no ``tile_agreement``, both it and ``gain.png`` for a store
+        of one tile (its gain is in the summary; one tile agrees with itself).
     score_factor : int
         Downsampling factor of the score figure (at least ``factor``; the figure
         shows at most 1024 values a side).
     """
+    from ._previews import read_preview
+
     figures = {}
+    before, before_factor = read_preview(group, "preview_reference")
+    after, after_factor = read_preview(group, "preview_capture")
+    if before is not None and after is not None:
+        figures["before_after.jpg"] = _write_before_after(group, before, after, after_factor,
+                                                          out / "before_after.jpg")
     figures["overlay.png"] = _write_overlay(group, attrs["tile_grid"], factor, out / "overlay.png")
-    figures["trajectory.svg"] = _write_trajectory(group, attrs, out / "trajectory.svg")
+    figures["trajectory.png"] = _write_trajectory(group, attrs, out / "trajectory.png")
     if list(attrs["tile_grid"]["tiles"]) != [1, 1]:  # one tile: its gain is in the summary, no agreement
-        figures["gain.svg"] = _write_gain(group, attrs, out / "gain.svg")
+        figures["gain.png"] = _write_gain(group, attrs, out / "gain.png")
         if "tile_agreement" in group:
-            figures["agreement.svg"] = _write_agreement(group, attrs, out / "agreement.svg")
+            figures["agreement.png"] = _write_agreement(group, attrs, out / "agreement.png")
     shape = tuple(group["change_score"].shape)
     score_factor = max(factor, math.ceil(shape[0] / _SCORE_SIDE), math.ceil(shape[1] / _SCORE_SIDE))
     figures["change_score.png"] = _write_score(group, attrs, score_factor, out / "change_score.png")
@@ -246,27 +248,53 @@ def _write_png(rgb, path):
     return {"size": (rgb.shape[1], rgb.shape[0])}
 
 
-# --------------------------------------------------------------------------- trajectory
+# --------------------------------------------------------------------------- before and after
 
-_TAB10 = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22",
-          "#17becf")  # matplotlib's tab10, the tile columns' colours up to 10 columns
+
+def _write_before_after(group, before, after, factor, path):
+    """``before_after.jpg``: the stored previews side by side, each with the
+    changes of its own grid outlined (``change_mask_reference`` on the
+    reference, ``change_mask`` on the capture), block maxima at the preview's
+    size so that no change is lost."""
+    from . import _report_plots as plots  # matplotlib: imported when a report is drawn
+
+    masks = []
+    for image, name in ((before, "change_mask_reference"), (after, "change_mask")):
+        mask = block_reduce(_Changed(group[name]), factor, "max") if name in group else np.zeros(image.shape[:2])
+        masks.append(mask[:image.shape[0], :image.shape[1]])
+    fig = plots.before_after_figure(before, after, masks[0], masks[1], factor=factor,
+                                    titles=("Reference (before)", "Capture (after)"))
+    return plots.save(fig, path)
+
+
+class _Changed:
+    """A mask array read as 1 where changed, 0 elsewhere ("no evidence", 255, included)."""
+
+    def __init__(self, array):
+        self.array, self.shape, self.chunks = array, array.shape, getattr(array, "chunks", array.shape)
+
+    def __getitem__(self, index):
+        return np.asarray(self.array[index]) == 1
+
+
+# --------------------------------------------------------------------------- trajectory
 
 
 def _write_trajectory(group, attrs, path):
-    """``trajectory.svg``: one panel per pose axis that is not zero on every
+    """``trajectory.png``: one panel per pose axis that is not zero on every
     row; the others are named in a note under the panels (and returned as
     ``"flat_axes"``)."""
+    from . import _report_plots as plots  # matplotlib: imported when a report is drawn
+
     traj = np.asarray(group["trajectory"][:], dtype=np.float64)
     per_tile = np.asarray(group["tile_trajectory"][:], dtype=np.float64) if "tile_trajectory" in group else None
     labels = _axis_labels(group, attrs, traj.shape[1])
     drawn, flat = flat_axes_split(traj, per_tile)
-    colors = _tile_colors(0 if per_tile is None else per_tile.shape[1])
-    svg, height = trajectory_svg(np.arange(traj.shape[0], dtype=np.float64), traj[:, drawn],
-                                 None if per_tile is None else per_tile[:, :, drawn], [labels[d] for d in drawn],
-                                 colors, list(attrs["tile_grid"]["row_edges"][1:-1]),
-                                 flat=[labels[d] for d in flat], width=_TRAJECTORY_WIDTH)
-    path.write_text(svg, encoding="utf-8")
-    return {"size": (_TRAJECTORY_WIDTH, height), "flat_axes": [labels[d] for d in flat]}
+    fig = plots.trajectory_figure(np.arange(traj.shape[0], dtype=np.float64), traj[:, drawn],
+                                  None if per_tile is None else per_tile[:, :, drawn], [labels[d] for d in drawn],
+                                  boundaries=list(attrs["tile_grid"]["row_edges"][1:-1]),
+                                  flat=[labels[d] for d in flat], width=_TRAJECTORY_WIDTH)
+    return {**plots.save(fig, path), "flat_axes": [labels[d] for d in flat]}
 
 
 def flat_axes_split(traj, per_tile=None):
@@ -307,56 +335,32 @@ def _axis_labels(group, attrs, count):
     return labels
 
 
-def _tile_colors(n):
-    """CSS colours of ``n`` tile columns: tab10, or viridis beyond 10."""
-    if n <= 10:
-        return list(_TAB10[:n])
-    from matplotlib import colormaps
-
-    rgb = colormaps["viridis"](np.linspace(0.0, 1.0, n), bytes=True)[:, :3]
-    return ["#{:02x}{:02x}{:02x}".format(*c) for c in rgb.tolist()]
-
-
 # --------------------------------------------------------------------------- per-tile maps
 
 
-def _write_tile_map(values, path, *, cmap, lo=None, hi=None, **kwargs):
-    """A ``(tiles_y, tiles_x)`` map as SVG (:func:`tile_map_svg`), coloured by
-    ``cmap`` from ``lo`` to ``hi`` (default: the finite values' range, widened
-    around a single value)."""
-    from matplotlib import colormaps
-
-    finite = values[np.isfinite(values)]
-    lo = (float(finite.min()) if finite.size else 0.0) if lo is None else lo
-    hi = (float(finite.max()) if finite.size else 1.0) if hi is None else hi
-    if hi <= lo:
-        pad = max(1e-3 * abs(lo), 1e-6)
-        lo, hi = lo - pad, hi + pad
-    with np.errstate(invalid="ignore"):
-        colors = colormaps[cmap]((values - lo) / (hi - lo), bytes=True)[..., :3]
-    stops = colormaps[cmap](np.linspace(0.0, 1.0, 33), bytes=True)[:, :3]
-    svg, width, height = tile_map_svg(values, colors, stops, lo=lo, hi=hi, **kwargs)
-    path.write_text(svg, encoding="utf-8")
-    return {"size": (width, height)}
-
-
 def _write_gain(group, attrs, path):
+    from . import _report_plots as plots  # matplotlib: imported when a report is drawn
+
     gain = np.asarray(group["gain"][:], dtype=np.float64)
-    return _write_tile_map(gain, path, cmap="cividis", title="Illumination gain per tile",
-                           label="gain (capture / reference)", fmt=".4f")
+    fig = plots.tile_map_figure(gain, cmap="cividis", title="Illumination gain per tile",
+                                label="gain (capture / reference)", fmt=".4f")
+    return plots.save(fig, path)
 
 
 def _write_agreement(group, attrs, path):
+    from . import _report_plots as plots  # matplotlib: imported when a report is drawn
+
     agree = np.asarray(group["tile_agreement"][:], dtype=np.float64)
     summary = attrs.get("summary", {})
     resolved = [tuple(t) for t in summary.get("resolved_tiles", [])]
     tolerance = (attrs.get("parameters") or {}).get("agreement")
     finite = agree[np.isfinite(agree)]
     top = max([float(finite.max()) if finite.size else 0.0] + ([1.2 * tolerance] if tolerance else []))
-    return _write_tile_map(agree, path, cmap="magma_r", lo=0.0, hi=max(top, 1e-3), title="Tile path vs fused path",
-                           label="disagreement (px)", fmt=".2f", marked=resolved,
-                           marked_label="re-solved around the other tiles' path",
-                           line=(tolerance, f"tolerance {tolerance:g} px") if tolerance else None)
+    fig = plots.tile_map_figure(agree, cmap="magma_r", lo=0.0, hi=max(top, 1e-3), title="Tile path vs fused path",
+                                label="disagreement (px)", fmt=".2f", marked=resolved,
+                                marked_label="re-solved around the other tiles' path",
+                                line=(tolerance, f"tolerance {tolerance:g} px") if tolerance else None)
+    return plots.save(fig, path)
 
 
 # --------------------------------------------------------------------------- change score
@@ -374,35 +378,15 @@ def _score_vmax(score, threshold):
 
 
 def _write_score(group, attrs, factor, path):
-    """``change_score.png``: the block-maximum score, one value per PNG pixel,
-    coloured with numpy (no resampling); its frame (axes, title, colorbar with
-    the threshold) is SVG for the page, the image drawn ``zoom`` times larger
-    when the map is small.
+    """``change_score.png``: the block-maximum score, each value a ``zoom`` x
+    ``zoom`` square of screen pixels (``zoom`` > 1 when the map is small), a
+    colorbar with the threshold.  Returns the figure entry with ``"vmax"`` and
+    ``"zoom"``."""
+    from . import _report_plots as plots  # matplotlib: imported when a report is drawn
 
-    Returns the figure entry: ``"size"`` of the PNG, ``"vmax"``, ``"zoom"`` and
-    ``"frame"`` (the ``<svg>`` element) with ``"frame_size"`` (its width and
-    height, px)."""
     score = block_reduce(group["change_score"], factor, "max")
     threshold = (attrs.get("summary") or {}).get("threshold")
     zoom = max(1, min(512 // min(score.shape), _SCORE_SIDE // max(score.shape)))
     vmax = _score_vmax(score, threshold)
-    entry = _write_png(_score_rgba(score, vmax)[..., :3], path)
-    frame, width, height = score_frame_svg(path.name, entry["size"], factor=factor, zoom=zoom, vmax=vmax,
-                                           threshold=threshold, stops=_colormap_stops(33))
-    return {**entry, "vmax": vmax, "zoom": zoom, "frame": frame, "frame_size": (width, height)}
-
-
-def _score_rgba(score, vmax):
-    """``score`` coloured by inferno on [0, vmax], uint8 RGBA; NaN white (the
-    page's background, as an unknown score was before)."""
-    from matplotlib import colormaps
-
-    with np.errstate(invalid="ignore"):
-        return colormaps["inferno"].with_extremes(bad="white")(score / np.float32(vmax), bytes=True)
-
-
-def _colormap_stops(n):
-    """``n`` colours of inferno evenly from its bottom to its top, uint8 RGB, shape (n, 3)."""
-    from matplotlib import colormaps
-
-    return colormaps["inferno"](np.linspace(0.0, 1.0, n), bytes=True)[:, :3]
+    fig = plots.score_figure(score, vmax=vmax, threshold=threshold, factor=factor, zoom=zoom)
+    return {**plots.save(fig, path), "vmax": vmax, "zoom": zoom}

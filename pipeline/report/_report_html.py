@@ -3,20 +3,22 @@ timings, parameters and georeferencing of one detect store.
 
 Self-contained apart from the figure files next to it: no JavaScript, no
 network; every value from the store is escaped.  Figures are ``<img>`` elements
-with their size, except the change score: its PNG is drawn inside an inline
-``<svg>`` frame (axes, colorbar) made by :mod:`._report_svg`, since an SVG
-shown as an image may not load another file.
+with their size.
 """
 
 import datetime
+import html
 import json
 
 import numpy as np
 
 from ._report_figures import FIGURES
-from ._report_svg import esc as _esc
 
 _STATES = {1: "solved", 2: "homogeneous", 3: "failed"}
+
+
+def _esc(value):
+    return html.escape(str(value), quote=True)
 
 _CSS = """
 body { font-family: system-ui, -apple-system, "Segoe UI", Helvetica, Arial, sans-serif; margin: 2em auto;
@@ -27,8 +29,7 @@ th, td { border: 1px solid #ddd; padding: 0.25em 0.6em; text-align: left; vertic
 th { background: #f4f4f4; } td.num { text-align: right; font-variant-numeric: tabular-nums; }
 code, .mono { font-family: ui-monospace, Menlo, Consolas, monospace; font-size: 0.9em; word-break: break-all; }
 figure { margin: 1.2em 0 2em; } figcaption { font-size: 0.92em; color: #444; max-width: 900px; margin-top: 0.4em; }
-img, svg.figure { max-width: 100%; height: auto; border: 1px solid #ccc; }
-svg.figure { background: #fff; }
+img { max-width: 100%; height: auto; border: 1px solid #ccc; }
 img.pixels { image-rendering: pixelated; }
 .meta { color: #666; font-size: 0.9em; }
 pre { white-space: pre-wrap; font-size: 0.8em; background: #f8f8f8; padding: 0.5em; }
@@ -162,20 +163,26 @@ def _captions(attrs, factor, score_factor, flat_axes=()):
                f"warped and blurred to match the capture (grayscale; dark blue where unknown). Faint cyan lines: "
                f"the {tile} px tile grid. {down}")
     agreement = ("How far each tile's path is from the fused one: RMS over rows of the largest displacement of the "
-                 "row ends, px." + (f" Tolerance {tol:g} px (black line on the colorbar)." if tol else "")
+                 "row ends, px; grey: n/a." + (f" Tolerance {tol:g} px (black line on the colorbar)." if tol else "")
                  + f" Dashed red outlines: tiles re-solved around the other tiles' path "
                    f"({len(s.get('resolved_tiles', []))}).")
     score = ("Magnitude of the change term."
              + (f" Threshold {s['threshold']:.4g} (cyan line on the colorbar)." if "threshold" in s else "")
              + (f" Block maximum over {score_factor} x {score_factor} px, so that small changes stay visible."
                 if score_factor > 1 else ""))
+    before_after = (f"The reference (before) and the capture (after) as the inputs show them, in colour where they "
+                    f"have it, the detected changes outlined in magenta on both (a circle around the small ones): "
+                    f"on the reference where the changes are on the ground "
+                    f"(change_mask_reference), on the capture where its rolling shutter recorded them "
+                    f"(change_mask). Previews kept in the store at detect time, at most 1024 px a side.")
     return {
+        "before_after.jpg": before_after,
         "overlay.png": overlay,
-        "trajectory.svg": "Per-row camera pose in global pose coordinates, one panel per axis. Black: the fused "
+        "trajectory.png": "Per-row camera pose in global pose coordinates, one panel per axis. Black: the fused "
                           "trajectory (median over tiles of solved rows); thin coloured lines: each tile column's "
                           "own estimate; dashed verticals: tile-row boundaries." + flat,
-        "gain.svg": "Illumination gain of the capture against the reference, one value per tile.",
-        "agreement.svg": agreement,
+        "gain.png": "Illumination gain of the capture against the reference, one value per tile.",
+        "agreement.png": agreement,
         "change_score.png": score,
     }
 
@@ -184,17 +191,14 @@ def _figures_html(figures, captions, one_tile=False):
     parts = []
     for name in FIGURES:
         if name not in figures:
-            why = ("one tile: its gain is in the summary" if name in ("gain.svg", "agreement.svg")
-                   and one_tile else "the store has no data for it")
+            why = ("one tile: its gain is in the summary" if name in ("gain.png", "agreement.png") and one_tile
+                   else "the store has no input previews (written by an earlier rsmb)" if name == "before_after.jpg"
+                   else "the store has no data for it")
             parts.append(f"<p>{_esc(name)}: not available ({why}).</p>")
             continue
-        entry = figures[name]
-        if "frame" in entry:  # an <svg> drawing the PNG inside its axes
-            shown = entry["frame"].replace("<svg ", f'<svg class="figure" role="img" aria-label="{_esc(name)}" ', 1)
-        else:
-            w, h = entry["size"]
-            cls = ' class="pixels"' if name == "overlay.png" else ""
-            shown = f'<img src="{_esc(name)}"{cls} width="{w}" height="{h}" alt="{_esc(name)}">'
+        w, h = figures[name]["size"]
+        cls = ' class="pixels"' if name == "overlay.png" else ""
+        shown = f'<img src="{_esc(name)}"{cls} width="{w}" height="{h}" alt="{_esc(name)}">'
         parts.append(f'<figure id="{_esc(name[:-4])}"><a href="{_esc(name)}">{shown}</a>'
                      f"<figcaption>{_esc(captions[name])}</figcaption></figure>")
     return "\n".join(parts)
@@ -214,7 +218,7 @@ def html_page(store, attrs, group, figures, factor, score_factor):
         "<h2>Inputs</h2>", _inputs_table(attrs),
         "<h2>Summary</h2>", _summary_table(summary), _row_state_table(group),
         "<h2>Figures</h2>", _figures_html(figures, _captions(attrs, factor, score_factor,
-                                                       figures.get("trajectory.svg", {}).get("flat_axes", ())),
+                                                       figures.get("trajectory.png", {}).get("flat_axes", ())),
                                              list(attrs.get("tile_grid", {}).get("tiles", [])) == [1, 1]),
         "<h2>Timings</h2>", _timings_table(summary.get("timings") or {}),
         "<h2>Parameters</h2>", _table(param_rows, ["parameter", "value"]),

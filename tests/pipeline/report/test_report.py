@@ -1,7 +1,8 @@
-"""Tests of pipeline.report._report: the HTML report of one detect run."""
+"""Tests of pipeline.report: the HTML report of one detect run, its
+matplotlib figures and the input previews the store keeps."""
 
 import re
-import xml.etree.ElementTree as ET
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -22,7 +23,6 @@ from rsmb.pipeline.report._report import (
 from rsmb.pipeline._synth import write_pair
 
 SHAPE = (256, 256)
-SVG = "{http://www.w3.org/2000/svg}"
 
 
 @pytest.fixture(scope="module")
@@ -36,33 +36,12 @@ def store(tmp_path_factory):
     return out
 
 
-def _png_size(path):
+def _image_size(path):
     with Image.open(path) as im:
-        im.verify()  # a valid PNG
+        im.verify()  # a valid image
     with Image.open(path) as im:
-        assert im.format == "PNG"
+        assert im.format == ("JPEG" if path.suffix == ".jpg" else "PNG")
         return im.size
-
-
-def _svg_size(path):
-    """Width and height of an SVG file (which must parse as XML, with a
-    viewBox of the same size)."""
-    root = ET.parse(path).getroot()
-    assert root.tag == f"{SVG}svg"
-    size = (int(root.get("width")), int(root.get("height")))
-    assert root.get("viewBox") == f"0 0 {size[0]} {size[1]}"
-    return size
-
-
-def _size(path):
-    return _svg_size(path) if path.suffix == ".svg" else _png_size(path)
-
-
-def _score_frame(page):
-    """The inline ``<svg>`` of the change score in a report page, parsed."""
-    match = re.search(r'<svg class="figure".*?</svg>', page, re.S)
-    assert match, "no score frame in the page"
-    return ET.fromstring(match.group(0))
 
 
 # --------------------------------------------------------------------------- the report
@@ -74,12 +53,10 @@ def test_report_has_every_figure(store, tmp_path):
     page = index.read_text(encoding="utf-8")
     attrs = zarr.open_group(str(store), mode="r").attrs.asdict()
     for name in FIGURES:
-        assert f'src="{name}"' in page or f'<image href="{name}"' in page
-        w, h = _size(tmp_path / "rep" / name)
+        w, h = _image_size(tmp_path / "rep" / name)
         assert 100 <= w <= 2000 and 100 <= h <= 2000
-        if name != "change_score.png":  # drawn inside its frame, sized there
-            assert re.search(f'<img src="{name}"[^>]* width="{w}" height="{h}"', page)
-    assert _png_size(tmp_path / "rep" / "overlay.png") == (SHAPE[1], SHAPE[0])  # small: full resolution
+        assert re.search(f'<img src="{name}"[^>]* width="{w}" height="{h}"', page)
+    assert _image_size(tmp_path / "rep" / "overlay.png") == (SHAPE[1], SHAPE[0])  # small: full resolution
     for role in ("reference", "distorted"):
         assert attrs["inputs"][role]["sha256"] in page
         assert attrs["inputs"][role]["path"] in page
@@ -104,7 +81,7 @@ def test_default_directory_next_to_store(store):
 @pytest.mark.parametrize("max_pixels", [64 * 64, 100 * 37, 1])
 def test_overlay_honours_max_pixels(store, tmp_path, max_pixels):
     write_report(store, tmp_path / "rep", max_pixels=max_pixels)
-    w, h = _png_size(tmp_path / "rep" / "overlay.png")
+    w, h = _image_size(tmp_path / "rep" / "overlay.png")
     assert w * h <= max_pixels
     f = downsample_factor(SHAPE, max_pixels)
     assert (h, w) == (-(-SHAPE[0] // f), -(-SHAPE[1] // f))
@@ -128,10 +105,10 @@ def test_existing_directory_refused(store, tmp_path):
     with pytest.raises(InputError, match="not empty"):
         write_report(store, out)
     (out / "notes.txt").write_text("kept")
-    (out / "trajectory.png").write_bytes(b"an earlier version's figure")
+    (out / "trajectory.svg").write_bytes(b"an earlier version's figure")
     assert write_report(store, out, overwrite=True).is_file()
     assert (out / "notes.txt").read_text() == "kept"
-    assert not (out / "trajectory.png").exists()  # replaced by trajectory.svg, not left to look current
+    assert not (out / "trajectory.svg").exists()  # replaced by trajectory.png, not left to look current
 
 
 def test_empty_existing_directory_is_used(store, tmp_path):
@@ -157,7 +134,7 @@ def test_bad_max_pixels(store, tmp_path, bad):
 
 
 def test_reports_in_threads(store, tmp_path):
-    """Two reports at once in threads: no global state (matplotlib lends only its colormaps)."""
+    """Two reports at once in threads: no global state (matplotlib figures without pyplot)."""
     with ThreadPoolExecutor(2) as pool:
         results = list(pool.map(lambda i: write_report(store, tmp_path / f"rep{i}", max_pixels=96 * 96), range(2)))
     for index in results:
@@ -266,35 +243,6 @@ def test_flat_axes_split_by_construction():
     assert flat_axes_split(unsolved) == ([0, 1, 2], [3, 4])
 
 
-def test_report_names_flat_axes_instead_of_drawing_them(store, tmp_path):
-    """A store whose rx and ry are zero on every row: the trajectory figure has
-    no panel for them, the caption says so and the figure is shorter than with
-    rx drawn."""
-    import shutil
-
-    copy = tmp_path / "flat.zarr"
-    shutil.copytree(store, copy)
-    group = zarr.open_group(str(copy), mode="r+")
-    assert list(group["trajectory"].attrs["pose_axes"])[3:] == ["rx", "ry"]
-    traj, per_tile = group["trajectory"][:], group["tile_trajectory"][:]
-    traj[:, 3:], per_tile[..., 3:] = 0.0, 0.0
-    traj[:, 0] = np.linspace(-2.0, 2.0, traj.shape[0])
-    group["trajectory"][:], group["tile_trajectory"][:] = traj, per_tile
-    page = write_report(copy, tmp_path / "flat").read_text(encoding="utf-8")
-    assert "No panel for rx (deg), ry (deg): zero on every row" in page
-    _, flat_height = _svg_size(tmp_path / "flat" / "trajectory.svg")
-    assert _panel_labels(tmp_path / "flat" / "trajectory.svg") == ["tx (px)", "ty (px)", "rz (deg)"]
-    assert "Not drawn, zero on every row: rx (deg), ry (deg)" in _svg_texts(tmp_path / "flat" / "trajectory.svg")
-
-    per_tile[5, 0, 3] = 0.01  # rx moves in one tile on one row: drawn again
-    group["tile_trajectory"][:] = per_tile
-    page = write_report(copy, tmp_path / "rx").read_text(encoding="utf-8")
-    assert "No panel for ry (deg): zero on every row" in page
-    _, rx_height = _svg_size(tmp_path / "rx" / "trajectory.svg")
-    assert rx_height > flat_height
-    assert _panel_labels(tmp_path / "rx" / "trajectory.svg") == ["tx (px)", "ty (px)", "rz (deg)", "rx (deg)"]
-
-
 def _outlines_whole_image(changed, small=4):
     """The overlay's outline pixels by their definition, on the whole image:
     the complement of a binary erosion, and rings from whole-image dilations."""
@@ -331,309 +279,351 @@ def test_outlines_in_windows_equal_whole_image(seed, dots):
     assert not _outlines(np.zeros_like(changed)).any()
 
 
-def test_score_values_are_pixels_of_the_png(tmp_path):
-    """A small score map is written one value per PNG pixel, each exactly its
-    colormap colour, and shown ``zoom`` times larger without smoothing."""
+
+# --------------------------------------------------------------------------- figures drawn with matplotlib
+
+
+def test_report_names_flat_axes_instead_of_drawing_them(store, tmp_path):
+    """A store whose rx and ry are zero on every row: the caption says so and
+    the trajectory figure is shorter than with rx drawn."""
+    import shutil
+
+    copy = tmp_path / "flat.zarr"
+    shutil.copytree(store, copy)
+    group = zarr.open_group(str(copy), mode="r+")
+    assert list(group["trajectory"].attrs["pose_axes"])[3:] == ["rx", "ry"]
+    traj, per_tile = group["trajectory"][:], group["tile_trajectory"][:]
+    traj[:, 3:], per_tile[..., 3:] = 0.0, 0.0
+    traj[:, 0] = np.linspace(-2.0, 2.0, traj.shape[0])
+    group["trajectory"][:], group["tile_trajectory"][:] = traj, per_tile
+    page = write_report(copy, tmp_path / "flat").read_text(encoding="utf-8")
+    assert "No panel for rx (deg), ry (deg): zero on every row" in page
+    _, flat_height = _image_size(tmp_path / "flat" / "trajectory.png")
+
+    per_tile[5, 0, 3] = 0.01  # rx moves in one tile on one row: drawn again
+    group["tile_trajectory"][:] = per_tile
+    page = write_report(copy, tmp_path / "rx").read_text(encoding="utf-8")
+    assert "No panel for ry (deg): zero on every row" in page
+    _, rx_height = _image_size(tmp_path / "rx" / "trajectory.png")
+    assert rx_height > flat_height
+
+
+@pytest.fixture
+def trajectory_data():
+    """300 rows, 2 tile columns, tile rows split at row 128; tx a ramp, rz a
+    sine; tile column 1 unsolved on rows 100-119 and on row 200 alone."""
+    rows = np.arange(300, dtype=np.float64)
+    traj = np.zeros((300, 2))
+    traj[:, 0] = -3.0 + 0.02 * rows
+    traj[:, 1] = 0.5 * np.sin(rows / 40.0)
+    per_tile = np.repeat(traj[:, None, :], 2, axis=1)
+    per_tile[:, 1, 1] += 0.05
+    per_tile[100:120, 1] = np.nan
+    per_tile[200, 1] = np.nan
+    return rows, traj, per_tile
+
+
+def test_trajectory_figure_panels_lines_and_note(trajectory_data):
+    """One panel per axis drawn, in order; in each the fused path (black)
+    and each tile column's own with its values (NaN where unsolved, where
+    matplotlib breaks the line); one dashed tile-row boundary; a legend; the
+    note names the flat axis."""
+    from rsmb.pipeline.report._report_plots import trajectory_figure
+
+    rows, traj, per_tile = trajectory_data
+    fig = trajectory_figure(rows, traj, per_tile, ["tx (px)", "rz (deg)"], boundaries=[128], flat=["ty (px)"])
+    axes = fig.axes
+    assert [ax.get_ylabel() for ax in axes] == ["tx (px)", "rz (deg)"]
+    assert axes[-1].get_xlabel().startswith("row (px)")
+    for d, ax in enumerate(axes):
+        solid = [line for line in ax.lines if line.get_linestyle() == "-"]
+        fused = [line for line in solid if line.get_color() == "black"]
+        assert len(fused) == 1
+        np.testing.assert_array_equal(fused[0].get_ydata(), traj[:, d])
+        tiles = [line for line in solid if line.get_color() != "black"]
+        assert len(tiles) == 2
+        np.testing.assert_array_equal(tiles[1].get_ydata(), per_tile[:, 1, d])  # NaN kept: the line breaks
+        assert np.isnan(tiles[1].get_ydata()[[100, 119, 200]]).all()
+        dashed = [line for line in ax.lines if line.get_linestyle() == "--"]
+        assert len(dashed) == 1 and list(dashed[0].get_xdata()) == [128, 128]
+        assert ax.get_xlim() == (0.0, 299.0)
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert legend == ["fused", "tile column 0", "tile column 1"]
+    assert "Not drawn, zero on every row: ty (px)" in [t.get_text() for t in fig.texts]
+
+
+def _cell_texts(ax):
+    return {(round(t.get_position()[1]), round(t.get_position()[0])): t.get_text() for t in ax.texts}
+
+
+def test_tile_map_figure_values_colours_marks_and_tolerance():
+    """A cell per tile with its value written in it (n/a and grey where
+    unknown) and coloured by the colormap at its value; re-solved tiles
+    outlined dashed red with a legend; the tolerance as a black line on the
+    colorbar."""
+    from matplotlib import colormaps
+    from matplotlib.colors import to_rgba
+    from matplotlib.patches import Rectangle
+
+    from rsmb.pipeline.report._report_plots import tile_map_figure
+
+    agree = np.array([[0.1, np.nan], [0.4, 2.5]])
+    fig = tile_map_figure(agree, cmap="magma_r", lo=0.0, hi=3.0, title="t", label="disagreement (px)", fmt=".2f",
+                          marked=[(1, 1)], marked_label="re-solved", line=(0.5, "tolerance 0.5 px"))
+    ax, cax = fig.axes
+    assert _cell_texts(ax) == {(0, 0): "0.10", (0, 1): "n/a", (1, 0): "0.40", (1, 1): "2.50"}
+    image = ax.images[0]
+    np.testing.assert_array_equal(np.ma.getdata(image.get_array()), agree)
+    assert image.to_rgba(np.array([2.5]))[0] == pytest.approx(colormaps["magma_r"](2.5 / 3.0))
+    assert image.to_rgba(np.ma.masked_invalid([np.nan]))[0] == pytest.approx(to_rgba("#d9d9d9"))
+    red = [p for p in ax.patches if isinstance(p, Rectangle) and p.get_edgecolor() == to_rgba("red")]
+    assert len(red) == 1 and red[0].get_xy() == pytest.approx((1 - 0.45, 1 - 0.45)) and red[0].get_linestyle() == "--"
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["re-solved"]
+    marks = [line for line in cax.lines if line.get_color() == "black"]
+    assert len(marks) == 1 and list(marks[0].get_ydata()) == [0.5, 0.5]
+    assert cax.get_ylabel() == "disagreement (px); line: tolerance 0.5 px"
+
+
+def test_tile_map_of_equal_values():
+    """Every tile the same gain: a range is made around it, every cell gets the
+    colormap's middle colour and the colorbar brackets the value."""
+    from matplotlib import colormaps
+
+    from rsmb.pipeline.report._report_plots import tile_map_figure
+
+    fig = tile_map_figure(np.ones((3, 2)), cmap="cividis", title="t", label="gain", fmt=".4f")
+    ax, cax = fig.axes
+    assert set(_cell_texts(ax).values()) == {"1.0000"} and len(ax.texts) == 6
+    assert ax.images[0].to_rgba(np.array([1.0]))[0] == pytest.approx(colormaps["cividis"](0.5), abs=1 / 255)
+    lo, hi = cax.get_ylim()
+    assert lo < 1.0 < hi
+
+
+def test_report_tile_maps_show_the_store(store, tmp_path):
+    """gain.png and agreement.png of a 2 x 2 store: the values drawn are the store's."""
+    from rsmb.pipeline.report import _report_figures, _report_plots
+
+    drawn = {}
+    real = _report_plots.tile_map_figure
+
+    def spy(values, **kwargs):
+        drawn[kwargs["title"]] = (np.array(values), kwargs)
+        return real(values, **kwargs)
+
+    group = zarr.open_group(str(store), mode="r")
+    attrs = group.attrs.asdict()
+    try:
+        _report_plots.tile_map_figure = spy
+        _report_figures._write_gain(group, attrs, tmp_path / "g.png")
+        _report_figures._write_agreement(group, attrs, tmp_path / "a.png")
+    finally:
+        _report_plots.tile_map_figure = real
+    np.testing.assert_array_equal(drawn["Illumination gain per tile"][0], group["gain"][:])
+    values, kwargs = drawn["Tile path vs fused path"]
+    np.testing.assert_array_equal(values, group["tile_agreement"][:])
+    assert kwargs["line"][0] == attrs["parameters"]["agreement"]
+    assert _image_size(tmp_path / "g.png")[0] > 100 and _image_size(tmp_path / "a.png")[0] > 100
+
+
+def test_score_figure_draws_each_value_as_a_square_and_marks_the_threshold(tmp_path):
+    """The score is drawn unresampled: each value a ``zoom`` x ``zoom`` square
+    of its colormap colour; the colorbar runs from 0 to vmax with a cyan line at
+    the threshold; NaN is white."""
     from matplotlib import colormaps
 
     from rsmb.pipeline.report._report_figures import _write_score
+    from rsmb.pipeline.report._report_plots import DPI, score_figure
 
     score = np.zeros((40, 60), np.float32)
     score[10:20, 30:50] = 0.37
     score[0, 0] = np.nan
     entry = _write_score({"change_score": score}, {"summary": {"threshold": 0.25}}, 1, tmp_path / "s.png")
     assert entry["vmax"] == pytest.approx(0.5)  # twice the threshold, above every score
-    rgb = np.asarray(Image.open(tmp_path / "s.png").convert("RGB"))
-    assert rgb.shape == (40, 60, 3) and entry["size"] == (60, 40)
-    with np.errstate(invalid="ignore"):
-        expected = colormaps["inferno"].with_extremes(bad="white")(score / np.float32(0.5), bytes=True)[..., :3]
-    np.testing.assert_array_equal(rgb, expected)
-    assert tuple(rgb[0, 0]) == (255, 255, 255)  # unknown: white
     assert entry["zoom"] == 512 // 40
-    image = ET.fromstring(entry["frame"]).find(f"{SVG}image")
-    assert image.get("href") == "s.png"
-    assert (int(image.get("width")), int(image.get("height"))) == (60 * 12, 40 * 12)
-    assert "pixelated" in image.get("style")
+    assert _image_size(tmp_path / "s.png") == entry["size"] == (60 * 12 + 230, 40 * 12 + 100)
+
+    fig = score_figure(score, vmax=0.5, threshold=0.25, zoom=4)
+    ax, cax = fig.axes
+    np.testing.assert_array_equal(np.ma.getdata(ax.images[0].get_array()), score)
+    assert cax.get_ylim() == (0.0, 0.5)
+    cyan = [line for line in cax.lines if line.get_color() == "cyan"]
+    assert len(cyan) == 1 and list(cyan[0].get_ydata()) == [0.25, 0.25]
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    pixels = np.asarray(canvas.buffer_rgba())[..., :3]
+    x0, y1 = ax.get_position().x0 * fig.get_figwidth() * DPI, ax.get_position().y1 * fig.get_figheight() * DPI
+    top = pixels.shape[0] - int(round(y1))
+    left = int(round(x0))
+    changed = colormaps["inferno"](0.37 / 0.5, bytes=True)[:3]
+    block = pixels[top + 12 * 4 + 1:top + 12 * 4 + 3, left + 35 * 4 + 1:left + 35 * 4 + 3]  # value (12, 35)
+    assert (block == changed).all()
+    zero = colormaps["inferno"](0.0, bytes=True)[:3]
+    assert (pixels[top + 5 * 4 + 1, left + 5 * 4 + 1] == zero).all()
+    assert (pixels[top + 2, left + 2] == 255).all()  # NaN: white (inside the spines)
 
 
-def _colorbar_threshold(frame):
-    """The threshold as drawn: the cyan line's height up the colour gradient,
-    in units of the bar (0 at the bottom, 1 at vmax)."""
-    bar = next(r for r in frame.iter(f"{SVG}rect") if r.get("fill", "").startswith("url(#"))
-    y0, height = float(bar.get("y")), float(bar.get("height"))
-    cyan = [p for p in frame.iter(f"{SVG}path") if p.get("stroke") == "cyan"]
-    assert len(cyan) == 1
-    y = float(re.match(r"M[-\d.]+ ([-\d.]+)h", cyan[0].get("d")).group(1))
-    return (y0 + height - y) / height, height
+def test_score_figure_without_threshold_has_no_mark():
+    from rsmb.pipeline.report._report_plots import score_figure
+
+    fig = score_figure(np.linspace(0, 1, 64 * 64, dtype=np.float32).reshape(64, 64), vmax=1.0)
+    assert not [line for line in fig.axes[1].lines if line.get_color() == "cyan"]
+    assert "threshold" not in fig.axes[1].get_ylabel()
 
 
-def test_score_colorbar_marks_the_threshold(store, tmp_path):
-    """The page draws the score PNG in a frame whose colorbar goes from 0 to
-    vmax and carries a cyan line at the store's threshold, with tick labels."""
+def test_report_score_colorbar_has_the_store_threshold(store, tmp_path):
     page = write_report(store, tmp_path / "rep").read_text(encoding="utf-8")
-    attrs = zarr.open_group(str(store), mode="r").attrs.asdict()
-    threshold = attrs["summary"]["threshold"]
-    frame = _score_frame(page)
-    w, h = _png_size(tmp_path / "rep" / "change_score.png")
-    assert (w, h) == (SHAPE[1], SHAPE[0])  # small: one full-resolution value per PNG pixel
-    image = frame.find(f"{SVG}image")
-    assert image.get("href") == "change_score.png"
-    zoom = int(image.get("width")) // w
-    assert zoom == 2 and int(image.get("height")) == h * zoom
-    score = zarr.open_group(str(store), mode="r")["change_score"][:]
-    from rsmb.pipeline.report._report_figures import _score_vmax
-
-    vmax = _score_vmax(score, threshold)
-    level, height = _colorbar_threshold(frame)
-    assert level == pytest.approx(threshold / vmax, abs=0.15 / height)
-    texts = [t.text for t in frame.iter(f"{SVG}text")]
-    assert "Change score" in texts and "column (px)" in texts and "row (px)" in texts
-    assert any("cyan line: threshold" in t for t in texts)
-    bar_ticks = [float(t.replace("\u2212", "-")) for t in texts if re.fullmatch(r"[\d.]+", t) and "." in t]
-    assert bar_ticks[0] == 0.0 and max(bar_ticks) <= vmax
-    assert "Threshold" in page and "cyan line on the colorbar" in page
+    threshold = zarr.open_group(str(store), mode="r").attrs["summary"]["threshold"]
+    assert f"Threshold {threshold:.4g} (cyan line on the colorbar)" in page
+    w, h = _image_size(tmp_path / "rep" / "change_score.png")
+    assert (w, h) == (SHAPE[1] * 2 + 230, SHAPE[0] * 2 + 100)  # each value a 2 x 2 square
 
 
-def test_score_frame_without_threshold_has_no_mark(tmp_path):
-    from rsmb.pipeline.report._report_figures import _write_score
-
-    score = np.linspace(0, 1, 64 * 64, dtype=np.float32).reshape(64, 64)
-    entry = _write_score({"change_score": score}, {"summary": {}}, 1, tmp_path / "s.png")
-    frame = ET.fromstring(entry["frame"])
-    assert not [p for p in frame.iter(f"{SVG}path") if p.get("stroke") == "cyan"]
-    assert not any("threshold" in (t.text or "") for t in frame.iter(f"{SVG}text"))
+# --------------------------------------------------------------------------- before and after
 
 
-# --------------------------------------------------------------------------- the trajectory as SVG
+def _rgb_png(path, rgb):
+    Image.fromarray(rgb).save(path)
+    return str(path)
 
 
-def _svg_texts(path):
-    return [t.text for t in ET.parse(path).getroot().iter(f"{SVG}text")]
+def _block_mean(a, f):
+    h, w = a.shape[:2]
+    pad = np.pad(a.astype(np.float64), ((0, -h % f), (0, -w % f)) + ((0, 0),) * (a.ndim - 2),
+                 constant_values=np.nan)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN blocks: NaN
+        return np.nanmean(pad.reshape(pad.shape[0] // f, f, pad.shape[1] // f, f, *a.shape[2:]), axis=(1, 3))
 
 
-def _panels(path):
-    return [g for g in ET.parse(path).getroot().iter(f"{SVG}g") if g.get("class") == "panel"]
+def test_previews_keep_colour_and_mark_missing_data(tmp_path):
+    """An 8-bit RGB capture and an RGBA reference: block means of the colour
+    bands, values kept as they are; alpha 0 where the reference's alpha is."""
+    from rsmb import tiles
+    from rsmb.pipeline.report._previews import read_preview, write_previews
+
+    rng = np.random.default_rng(4)
+    cap = rng.integers(0, 256, (70, 101, 3), dtype=np.uint8)
+    ref = np.concatenate([rng.integers(0, 256, (70, 101, 3), dtype=np.uint8), np.full((70, 101, 1), 255, np.uint8)],
+                         axis=-1)
+    ref[:30, :40, 3] = 0  # no data: three whole preview blocks of 10 x 10 (rows 0-29, cols 0-39)
+    pairing = tiles.pair_images(_rgb_png(tmp_path / "ref.png", ref), _rgb_png(tmp_path / "cap.png", cap))
+    group = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
+    write_previews(group, pairing, side=11)  # 101 px -> factor 10, 8 x 11 preview pixels
+    after, factor = read_preview(group, "preview_capture")
+    assert factor == 10 and after.shape == (7, 11, 4) and after.dtype == np.uint8
+    np.testing.assert_array_equal(after[..., :3], np.floor(_block_mean(cap, 10) + 0.5).astype(np.uint8))
+    assert (after[..., 3] == 255).all()
+    before, _ = read_preview(group, "preview_reference")
+    masked = ref[..., :3].astype(np.float64)
+    masked[ref[..., 3] == 0] = np.nan
+    expected = _block_mean(masked, 10)
+    assert (before[:3, :4, 3] == 0).all() and (before[3:, :, 3] == 255).all() and (before[:, 4:, 3] == 255).all()
+    np.testing.assert_array_equal(before[3:, :, :3], np.floor(expected[3:] + 0.5).astype(np.uint8))
+    assert group["preview_capture"].metadata.dimension_names == ("preview_row", "preview_col", "rgba")
 
 
-def _panel_labels(path):
-    """Each panel's axis label: its one rotated text."""
-    return [next(t.text for t in g.iter(f"{SVG}text") if t.get("transform")) for g in _panels(path)]
+def test_previews_of_16_bit_gray_are_stretched_gray(tmp_path):
+    """One band of 16 bits: gray (R = G = B), its 0.5th and 99.5th percentiles
+    at 0 and 255, the order of values kept."""
+    from rsmb import tiles
+    from rsmb.pipeline.report._previews import read_preview, write_previews
+
+    image = np.tile(np.linspace(1000, 5000, 200).astype(np.uint16), (50, 1))
+    path = tmp_path / "g.png"
+    Image.fromarray(image).save(path)
+    group = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
+    write_previews(group, tiles.pair_images(str(path), str(path)))
+    rgba, factor = read_preview(group, "preview_capture")
+    assert factor == 1
+    assert (rgba[..., 0] == rgba[..., 1]).all() and (rgba[..., 1] == rgba[..., 2]).all()
+    row = rgba[0, :, 0].astype(int)
+    assert row[0] == 0 and row[-1] == 255 and (np.diff(row) >= 0).all()
 
 
-def _polylines(panel):
-    """(stroke colour, [(x, y), ...]) of every polyline of a panel."""
-    out = []
-    for g in panel.iter(f"{SVG}g"):
-        for line in g.findall(f"{SVG}polyline"):
-            pts = [tuple(map(float, p.split(","))) for p in line.get("points").split()]
-            out.append((g.get("stroke"), pts))
-    return out
+def test_georeferenced_reference_preview_is_on_the_capture_grid(tmp_path):
+    """A larger RGB GeoTIFF reference and a gray capture that is a window of
+    it: the reference preview is the reference's window under the capture,
+    block-averaged onto the capture's grid (ground frame)."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    from rsmb import tiles
+    from rsmb.pipeline.report._previews import read_preview, write_previews
+
+    rng = np.random.default_rng(6)
+    ref = rng.integers(0, 256, (3, 120, 160), dtype=np.uint8)
+    kw = dict(driver="GTiff", crs="EPSG:32633", dtype="uint8")
+    with rasterio.open(tmp_path / "ref.tif", "w", height=120, width=160, count=3,
+                       transform=from_origin(500000, 4000000, 0.5, 0.5), **kw) as ds:
+        ds.write(ref)
+    r0, c0 = 20, 40  # the capture's origin in reference pixels
+    with rasterio.open(tmp_path / "cap.tif", "w", height=64, width=80, count=1,
+                       transform=from_origin(500000 + 0.5 * c0, 4000000 - 0.5 * r0, 0.5, 0.5), **kw) as ds:
+        ds.write(ref[:1, r0:r0 + 64, c0:c0 + 80])
+    pairing = tiles.pair_images(str(tmp_path / "ref.tif"), str(tmp_path / "cap.tif"))
+    assert pairing.mode == "georeferenced"
+    group = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
+    write_previews(group, pairing, side=40)  # factor 2
+    before, factor = read_preview(group, "preview_reference")
+    assert factor == 2 and before.shape == (32, 40, 4)
+    window = np.moveaxis(ref[:, r0:r0 + 64, c0:c0 + 80], 0, -1)
+    assert np.abs(before[..., :3].astype(int) - _block_mean(window, 2)).max() <= 1
+    assert (before[..., 3] == 255).all()
+    assert group["preview_reference"].attrs["frame"].startswith("ground")
 
 
-@pytest.fixture
-def trajectory_store(tmp_path):
-    """A store with only what the trajectory figure reads: 300 rows, 2 tile
-    columns, tile rows split at row 128; tx a ramp, ty zero everywhere, rz a
-    sine; tile column 1 unsolved on rows 100-119 and on row 200 alone."""
-    rows = np.arange(300, dtype=np.float64)
-    traj = np.zeros((300, 3))
-    traj[:, 0] = -3.0 + 0.02 * rows
-    traj[:, 2] = 0.5 * np.sin(rows / 40.0)
-    per_tile = np.repeat(traj[:, None, :], 2, axis=1)
-    per_tile[:, 1, 2] += 0.05
-    per_tile[100:120, 1] = np.nan
-    per_tile[200, 1] = np.nan
-    group = zarr.open_group(str(tmp_path / "t.zarr"), mode="w")
-    group.create_array("trajectory", data=traj).attrs.update({"pose_axes": ["tx", "ty", "rz"],
-                                                              "units": ["px", "px", "deg"]})
-    group.create_array("tile_trajectory", data=per_tile)
-    attrs = {"tile_grid": {"row_edges": [0, 128, 300], "col_edges": [0, 100, 200], "tiles": [2, 2]}}
-    return group, attrs, traj
-
-
-def test_trajectory_svg_panels_lines_and_note(trajectory_store, tmp_path):
-    """One panel per axis not zero on every row, in order; in each the fused
-    path (black, one line) and each tile column's path, broken where it is
-    NaN; one dashed tile-row boundary; the note names the flat axis."""
-    from rsmb.pipeline.report._report_figures import _write_trajectory
-
-    group, attrs, traj = trajectory_store
-    entry = _write_trajectory(group, attrs, tmp_path / "t.svg")
-    assert entry["flat_axes"] == ["ty (px)"]
-    assert _svg_size(tmp_path / "t.svg") == entry["size"]
-    assert _panel_labels(tmp_path / "t.svg") == ["tx (px)", "rz (deg)"]
-    texts = _svg_texts(tmp_path / "t.svg")
-    assert "Not drawn, zero on every row: ty (px)" in texts
-    assert "row (px); dashed: tile-row boundaries" in texts
-    assert {"fused", "tile column 0", "tile column 1"} <= set(texts)  # the legend
-    for panel in _panels(tmp_path / "t.svg"):
-        lines = _polylines(panel)
-        by_colour = {}
-        for colour, pts in lines:
-            by_colour.setdefault(colour, []).append(pts)
-        assert len(by_colour["#000"]) == 1  # fused: one unbroken line
-        assert len(by_colour["#1f77b4"]) == 1  # tile column 0
-        assert len(by_colour["#ff7f0e"]) == 3  # tile column 1: rows 0-99, 120-199, 201-299
-        xs = [pts[0][0] for pts in by_colour["#ff7f0e"]] + [pts[-1][0] for pts in by_colour["#ff7f0e"]]
-        assert len(set(xs)) == 6 and min(xs) == 0.0  # the breaks are at different rows
-        for _, pts in lines:
-            assert all(b[0] > a[0] for a, b in zip(pts, pts[1:]))  # rows increase along a line
-            assert all(round(v, 1) == v for p in pts for v in p)  # 0.1 px
-        dashed = [p for p in panel.iter(f"{SVG}path") if p.get("stroke-dasharray")]
-        assert len(dashed) == 1 and dashed[0].get("d").count("M") == 1  # one tile-row boundary
-    ramp = next(pts for colour, pts in _polylines(_panels(tmp_path / "t.svg")[0]) if colour == "#000")
-    assert len(ramp) <= 3  # a straight line needs no inner points (chunks of 256 rows)
-
-
-def test_trajectory_y_ticks_label_the_drawn_values(trajectory_store, tmp_path):
-    """The y tick labels are evenly spaced round values whose positions map
-    linearly to the values, and the fused path drawn lies where the ticks say
-    its values are (within 0.15 px)."""
-    from rsmb.pipeline.report._report_figures import _write_trajectory
-
-    group, attrs, traj = trajectory_store
-    _write_trajectory(group, attrs, tmp_path / "t.svg")
-    panel = _panels(tmp_path / "t.svg")[0]  # tx, a ramp from -3 to 2.98
-    ticks = [(float(t.get("y")), float(t.text.replace("\u2212", "-"))) for t in panel.iter(f"{SVG}text")
-             if t.get("text-anchor") == "end"]
-    assert 3 <= len(ticks) <= 6  # a step of 1, 2, 2.5 or 5 times a power of ten, at most 5 of them
-    values = np.array([v for _, v in ticks])
-    assert np.allclose(np.diff(values), values[1] - values[0]) and values[1] - values[0] in (1.0, 2.0, 2.5)
-    ys = np.array([y for y, _ in ticks])
-    slope, offset = np.polyfit(values, ys, 1)
-    assert np.allclose(slope * values + offset, ys, atol=0.06)
-    fused = next(pts for colour, pts in _polylines(panel) if colour == "#000")
-    for x, y in fused:
-        row = x * 299 / 889  # the panel is 889 px wide for rows 0..299
-        assert y == pytest.approx(slope * traj[int(round(row)), 0] + offset, abs=0.15)
-
-
-def test_polylines_break_at_nan_and_keep_the_drawn_line():
-    """Dropped points lie within the tolerance of the line drawn through the
-    kept ones (plus rounding); NaN breaks the line; a lone point is a dot."""
-    from rsmb.pipeline.report._report_svg import _TOLERANCE, polylines
-
-    rng = np.random.default_rng(5)
-    x = np.arange(700, dtype=np.float64) * 0.87
-    y = 50 + 30 * np.sin(x / 90.0) + rng.normal(0, 0.02, x.size)
-    y[300:310] = np.nan
-    y[500] = y[502] = np.nan  # row 501 alone
-    lines = polylines(x, y)
-    assert len(lines) == 3 + 1
-    pts = [np.array([p.split(",") for p in line.split()], float) for line in lines]
-    assert pts[2].shape == (2, 2) and (pts[2][0] == pts[2][1]).all()  # the dot at row 501
-    assert pts[2][0][0] == pytest.approx(round(501 * 0.87, 1))
-    kept = sum(len(p) for p in pts)
-    assert kept < 0.8 * (700 - 12)  # a smooth line loses points
-    for p, (lo, hi) in zip([pts[0], pts[1], pts[3]], [(0, 300), (310, 500), (503, 700)]):
-        assert p[0][0] == pytest.approx(round(x[lo], 1)) and p[-1][0] == pytest.approx(round(x[hi - 1], 1))
-        drawn = np.interp(x[lo:hi], p[:, 0], p[:, 1])
-        assert np.abs(drawn - y[lo:hi]).max() <= _TOLERANCE + 0.1 + 1e-9
-    straight = polylines(np.arange(1000.0), np.full(1000, 7.25))
-    assert len(straight) == 1 and len(straight[0].split()) <= 1000 // 256 + 2
-
-
-@pytest.mark.parametrize("lo, hi, nbins, expected", [
-    (0, 1023, 9, [0, 200, 400, 600, 800, 1000]),
-    (0, 2047, 9, [0, 250, 500, 750, 1000, 1250, 1500, 1750, 2000]),
-    (-10.9, 10.9, 5, [-10, -5, 0, 5, 10]),
-    (0.0, 0.105, 6, [0.0, 0.02, 0.04, 0.06, 0.08, 0.1]),
-])
-def test_nice_ticks(lo, hi, nbins, expected):
-    from rsmb.pipeline.report._report_svg import nice_ticks, tick_labels
-
-    ticks, step = nice_ticks(lo, hi, nbins)
-    np.testing.assert_allclose(ticks, expected, atol=1e-12)
-    labels = [float(s.replace("\u2212", "-")) for s in tick_labels(ticks, step)]
-    np.testing.assert_allclose(labels, expected, atol=1e-12)
-    assert len(set(tick_labels(ticks, step))) == len(ticks)
-
-
-def test_tick_labels_format():
-    from rsmb.pipeline.report._report_svg import tick_labels
-
-    assert tick_labels([-2.5, 0.0, 2.5], 2.5) == ["\u22122.5", "0.0", "2.5"]
-    assert tick_labels([0.0, 200.0], 200.0) == ["0", "200"]
-    assert tick_labels([-1e-17, 0.25], 0.25) == ["0.00", "0.25"]  # no "-0.00"
-    assert tick_labels([0.0, 2e-8, 4e-8], 2e-8) == ["0", "2e\u221208", "4e\u221208"]
-
-
-# --------------------------------------------------------------------------- per-tile maps as SVG
-
-
-def _cells(path):
-    """{(tile_y, tile_x): (fill, text)} of a tile map, from the cell rects and
-    the texts centred in them."""
-    root = ET.parse(path).getroot()
-    rects = [r for g in root.iter(f"{SVG}g") if g.get("shape-rendering") for r in g.findall(f"{SVG}rect")]
-    xs = sorted({float(r.get("x")) for r in rects})
-    ys = sorted({float(r.get("y")) for r in rects})
-    cells = {}
-    for r in rects:
-        x, y, w, h = (float(r.get(k)) for k in ("x", "y", "width", "height"))
-        inside = [t.text for t in root.iter(f"{SVG}text") if t.get("text-anchor") == "middle"
-                  and t.get("dominant-baseline") and x < float(t.get("x")) < x + w and y < float(t.get("y")) < y + h]
-        cells[ys.index(y), xs.index(x)] = (r.get("fill"), inside[0] if inside else None)
-    return cells
-
-
-def test_tile_maps_write_values_colours_marks_and_tolerance(store, tmp_path):
-    """gain.svg and agreement.svg: a cell per tile with its value written in
-    it (n/a and grey where unknown), the colormap's colour at the value, the
-    re-solved tiles outlined dashed red with a legend, the tolerance as a black
-    line on the agreement colorbar."""
+def test_detect_store_keeps_previews_and_the_report_shows_them(store, tmp_path):
+    """``rsmb detect`` stores both previews (the synthetic pair is 16-bit gray:
+    stretched gray, same size); the report draws before_after.jpg from them,
+    and a store without them (an earlier version's) still gets its report."""
     import shutil
 
-    from matplotlib import colormaps
-
-    copy = tmp_path / "maps.zarr"
-    shutil.copytree(store, copy)
-    group = zarr.open_group(str(copy), mode="r+")
-    agree = np.array([[0.1, np.nan], [0.4, 2.5]])
-    gain = np.array([[1.0, 1.02], [0.98, 1.01]])
-    group["tile_agreement"][:], group["gain"][:] = agree, gain
-    summary = dict(group.attrs["summary"])
-    summary["resolved_tiles"] = [[1, 1]]
-    group.attrs["summary"] = summary
-    tolerance = group.attrs["parameters"]["agreement"]
-    write_report(copy, tmp_path / "rep")
-
-    cells = _cells(tmp_path / "rep" / "gain.svg")
-    assert {k: v[1] for k, v in cells.items()} == {(0, 0): "1.0000", (0, 1): "1.0200", (1, 0): "0.9800",
-                                                  (1, 1): "1.0100"}
-    top = colormaps["cividis"](1.0, bytes=True)[:3]
-    assert cells[0, 1][0] == "#{:02x}{:02x}{:02x}".format(*top)  # the largest gain: the top colour
-
-    cells = _cells(tmp_path / "rep" / "agreement.svg")
-    assert cells[0, 1] == ("#d9d9d9", "n/a")
-    assert cells[1, 1][1] == "2.50" and cells[0, 0][1] == "0.10"
-    root = ET.parse(tmp_path / "rep" / "agreement.svg").getroot()
-    dashed_red = [r for r in root.iter(f"{SVG}rect") if r.get("stroke") == "red"]
-    assert len(dashed_red) == 1 + 1  # the re-solved tile and the legend's swatch
-    texts = [t.text for t in root.iter(f"{SVG}text")]
-    assert "re-solved around the other tiles' path" in texts
-    assert f"disagreement (px); line: tolerance {tolerance:g} px" in texts
-    bar = next(r for r in root.iter(f"{SVG}rect") if r.get("fill", "").startswith("url(#"))
-    y0, height = float(bar.get("y")), float(bar.get("height"))
-    mark = [p for p in root.iter(f"{SVG}path") if p.get("stroke-width") == "2"]
-    assert len(mark) == 1
-    y = float(re.match(r"M[-\d.]+ ([-\d.]+)h", mark[0].get("d")).group(1))
-    vmax = max(2.5, 1.2 * tolerance)
-    assert (y0 + height - y) / height == pytest.approx(tolerance / vmax, abs=0.1 / height)
+    group = zarr.open_group(str(store), mode="r")
+    for name in ("preview_reference", "preview_capture"):
+        rgba = group[name][:]
+        assert rgba.shape == SHAPE + (4,) and (rgba[..., 3] == 255).all()
+        assert (rgba[..., 0] == rgba[..., 2]).all()
+    page = write_report(store, tmp_path / "rep").read_text(encoding="utf-8")
+    assert '<img src="before_after.jpg"' in page and "Reference (before)" not in page  # titles are in the figure
+    assert "outlined in magenta on both" in page
+    old = tmp_path / "old.zarr"
+    shutil.copytree(store, old)
+    for name in ("preview_reference", "preview_capture"):
+        shutil.rmtree(old / name)
+    zarr.consolidate_metadata(str(old))
+    page = write_report(old, tmp_path / "old").read_text(encoding="utf-8")
+    assert "before_after.jpg: not available (the store has no input previews" in page
+    assert not (tmp_path / "old" / "before_after.jpg").exists()
 
 
-def test_tile_map_of_equal_values(tmp_path):
-    """Every tile the same gain: a range is made around it, every cell gets
-    the colormap's middle colour and the colorbar ticks bracket the value."""
-    from matplotlib import colormaps
+def test_before_after_figure_outlines_the_changes_on_both():
+    """Each panel shows its preview with a contour around each change of its
+    own mask (in input pixels: preview pixels times the factor) and a circle
+    around a change of one pixel."""
+    from rsmb.pipeline.report._report_plots import before_after_figure
 
-    from rsmb.pipeline.report._report_figures import _write_tile_map
-
-    entry = _write_tile_map(np.ones((3, 2)), tmp_path / "g.svg", cmap="cividis", title="t", label="gain", fmt=".4f")
-    assert _svg_size(tmp_path / "g.svg") == entry["size"]
-    cells = _cells(tmp_path / "g.svg")
-    middle = "#{:02x}{:02x}{:02x}".format(*colormaps["cividis"](0.5, bytes=True)[:3])
-    assert len(cells) == 6 and all(v == (middle, "1.0000") for v in cells.values())
-    ticks = [float(t.text.replace("\u2212", "-")) for t in ET.parse(tmp_path / "g.svg").getroot().iter(f"{SVG}text")
-             if t.get("dominant-baseline") and not t.get("text-anchor") and t.text[0].isdigit()]
-    assert len(ticks) >= 2 and min(ticks) <= 1.0 <= max(ticks)
+    rng = np.random.default_rng(8)
+    before = rng.integers(0, 256, (50, 80, 4), dtype=np.uint8)
+    after = rng.integers(0, 256, (50, 80, 4), dtype=np.uint8)
+    before[..., 3] = after[..., 3] = 255
+    ref_mask, cap_mask = np.zeros((50, 80)), np.zeros((50, 80))
+    ref_mask[10:20, 30:50] = 1
+    cap_mask[12:22, 33:53] = 1
+    cap_mask[40, 5] = 1  # one pixel
+    fig = before_after_figure(before, after, ref_mask, cap_mask, titles=("before", "after"), factor=4)
+    for ax, mask, title, image in zip(fig.axes, (ref_mask, cap_mask), ("before", "after"), (before, after)):
+        assert ax.get_title() == title
+        np.testing.assert_array_equal(ax.images[0].get_array(), image)
+        assert ax.images[0].get_extent() == [0, 80 * 4, 50 * 4, 0]
+        contour = [c for c in ax.collections if hasattr(c, "levels")][0]
+        vertices = np.concatenate([p.vertices for p in contour.get_paths() if len(p.vertices)])
+        rows, cols = np.nonzero(mask)
+        big = vertices[vertices[:, 0] > 60]  # the rectangle's outline: half a pixel outside its pixel centres
+        assert big[:, 0].min() == pytest.approx(cols[cols > 15].min() * 4, abs=2.01)
+        assert big[:, 0].max() == pytest.approx((cols.max() + 1) * 4, abs=2.01)
+        assert big[:, 1].min() == pytest.approx(rows[cols > 15].min() * 4, abs=2.01)
+    circles = [c for c in fig.axes[1].collections if not hasattr(c, "levels")]
+    assert len(circles) == 1 and circles[0].get_offsets().tolist() == [[5.5 * 4, 40.5 * 4]]
+    assert not [c for c in fig.axes[0].collections if not hasattr(c, "levels")]  # no small change there

@@ -1,0 +1,214 @@
+"""Small colour previews of a detect run's two inputs, kept in its store.
+
+A report shows the reference (before) and the capture (after) as a surveyor
+sees them, in colour where the inputs have it; it must not depend on the
+inputs still being where the run found them.  So :func:`write_previews`, called
+once at the end of ``rsmb detect``, stores both as small RGBA arrays:
+
+``preview_capture``
+    The capture on its own pixel grid (sensor frame), block mean of
+    ``factor`` x ``factor`` pixels.
+``preview_reference``
+    The reference as it was compared: in pixel mode its own pixels (the same
+    grid as the capture's); when georeferenced, the reference set resampled
+    (GDAL ``average``, the first file with data wins) onto the capture's
+    nominal grid (ground frame), the grid ``change_mask_reference`` is on.
+
+Both are uint8, shape ``(ceil(H / factor), ceil(W / factor), 4)`` with the
+longer side at most :data:`PREVIEW_SIDE`; alpha 0 where the input has no data
+(alpha band, nodata, NaN, outside the reference).  8-bit inputs keep their
+values; other bit depths and floats are stretched from their 0.5th to 99.5th
+percentile of valid values (each image on its own).  One or two bands are
+gray, three or more the first three colour bands.  Inputs are read in strips
+(memory bounded by a strip, never by the image).
+"""
+
+import contextlib
+import math
+import os
+import warnings
+
+import numpy as np
+
+from ._report_figures import _reduce_band
+
+__all__ = ["PREVIEW_NAMES", "PREVIEW_SIDE", "preview_factor", "read_preview", "write_previews"]
+
+PREVIEW_SIDE = 1024  # px, the longer side of a preview at most
+PREVIEW_NAMES = ("preview_reference", "preview_capture")
+_STRIP_ROWS = 256  # input rows read at a time (rounded up to whole preview rows)
+_STRETCH = (0.5, 99.5)  # percentiles mapped to 0 and 255 for inputs that are not 8-bit
+
+
+def preview_factor(shape, side=PREVIEW_SIDE):
+    """Input pixels per preview pixel on a side: the smallest integer leaving
+    the longer side of ``shape`` at most ``side``."""
+    return max(1, math.ceil(max(shape) / side))
+
+
+def write_previews(group, pairing, *, side=PREVIEW_SIDE):
+    """Write ``preview_reference`` and ``preview_capture`` into a detect store.
+
+    Parameters
+    ----------
+    group : zarr.Group
+        The store being written (replaced if the arrays exist).
+    pairing : tiles.Pairing
+        How the run compared the capture with its reference set.
+    side : int
+        Longest side of a preview, px.
+    """
+    factor = preview_factor(pairing.shape, side)
+    shape = tuple(-(-n // factor) for n in pairing.shape)
+    capture = _read_preview(pairing.capture, factor)
+    if pairing.mode == "georeferenced":
+        reference = _warp_preview(pairing.reference_grids, pairing.grid, factor, shape)
+        frame = "ground: the reference set resampled onto the capture's nominal grid"
+    else:
+        reference = _read_preview(pairing.references[0], factor)
+        frame = "the reference's own pixels (compared pixel for pixel)"
+    for name, rgba, where in (("preview_reference", reference, frame),
+                              ("preview_capture", capture, "sensor: the capture's own pixels")):
+        array = group.create_array(name, shape=rgba.shape, dtype="uint8", chunks=rgba.shape,
+                                   dimension_names=["preview_row", "preview_col", "rgba"], overwrite=True)
+        array[:] = rgba
+        array.attrs.update({"factor": factor, "frame": where,
+                            "description": "RGBA preview, block mean of factor x factor input pixels; "
+                                           "alpha 0 where the input has no data"})
+
+
+def read_preview(group, name):
+    """A stored preview (uint8 RGBA) and its factor, or ``(None, None)`` for a
+    store written before previews were kept."""
+    if name not in group:
+        return None, None
+    array = group[name]
+    return np.asarray(array[:]), int(array.attrs.get("factor", 1))
+
+
+# --------------------------------------------------------------------------- reading the inputs
+
+
+def _read_preview(path, factor):
+    """RGBA preview of one image file or zarr/NPY array, read in strips."""
+    strip = factor * max(1, -(-_STRIP_ROWS // factor))
+    parts = []
+    with _strip_reader(path) as (reader, height, eight_bit):
+        for r0 in range(0, height, strip):
+            bands, valid = reader(r0, min(height, r0 + strip))
+            bands = np.where(valid, bands, np.float32(np.nan))
+            parts.append(np.stack([_reduce_band(b, factor, "mean") for b in bands]))
+    return _to_rgba(np.concatenate(parts, axis=1), eight_bit)
+
+
+@contextlib.contextmanager
+def _strip_reader(path):
+    """``(read(r0, r1) -> (bands (n, rows, W) float32, valid (rows, W)), H, 8-bit?)``."""
+    if os.path.isdir(path) or path.lower().endswith(".npy"):
+        yield _array_reader(path)
+        return
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        ds = rasterio.open(path)
+    with ds:
+        yield _raster_reader(ds)
+
+
+def _color_bands(count, alpha):
+    """Indices of the bands drawn: the first three that are not alpha, or the first (gray)."""
+    color = [i for i in range(count) if i != alpha]
+    return color[:3] if len(color) >= 3 else color[:1]
+
+
+def _array_reader(path):
+    import zarr
+
+    array = zarr.open_array(store=path, mode="r") if os.path.isdir(path) else np.load(path, mmap_mode="r")
+    channels = 1 if array.ndim == 2 else array.shape[2]
+    alpha = channels - 1 if channels in (2, 4) else None
+    bands = _color_bands(channels, alpha)
+    nodata = array.attrs.get("nodata") if hasattr(array, "attrs") else None
+
+    def read(r0, r1):
+        block = np.asarray(array[r0:r1])
+        block = block[..., None] if block.ndim == 2 else block
+        data = np.moveaxis(block[..., bands], -1, 0).astype(np.float32)
+        valid = np.isfinite(data).all(axis=0)
+        if alpha is not None:
+            valid &= block[..., alpha] > 0
+        if nodata is not None:
+            valid &= ~(data == np.float32(nodata)).any(axis=0)
+        return data, valid
+
+    return read, int(array.shape[0]), np.dtype(array.dtype) == np.uint8
+
+
+def _alpha_index(ds):
+    """The alpha band of a rasterio dataset: by colour interpretation, else by
+    count (2: gray + alpha, 4: RGBA), as the ingest reads it."""
+    from rasterio.enums import ColorInterp
+
+    alpha = [i for i, interp in enumerate(ds.colorinterp) if interp == ColorInterp.alpha]
+    return alpha[0] if alpha else (ds.count - 1 if ds.count in (2, 4) else None)
+
+
+def _raster_reader(ds):
+    from rasterio.windows import Window
+
+    alpha = _alpha_index(ds)
+    bands = _color_bands(ds.count, alpha)
+    nodata = ds.nodata
+
+    def read(r0, r1):
+        window = Window(0, r0, ds.width, r1 - r0)
+        data = ds.read([b + 1 for b in bands], window=window).astype(np.float32)
+        valid = np.isfinite(data).all(axis=0)
+        if alpha is not None:
+            valid &= ds.read(alpha + 1, window=window) > 0
+        if nodata is not None:
+            valid &= ~(data == np.float32(nodata)).any(axis=0)
+        return data, valid
+
+    return read, ds.height, ds.dtypes[bands[0]] == "uint8"
+
+
+def _warp_preview(grids, capture, factor, shape):
+    """The reference set on the capture's grid coarsened by ``factor``: each
+    file resampled (``average``) where the files before it left no data."""
+    import rasterio
+    from rasterio.transform import Affine
+    from rasterio.warp import Resampling, reproject
+
+    out, eight_bit = None, True
+    for grid in grids:
+        with rasterio.open(grid.path) as ds:
+            alpha = _alpha_index(ds)
+            bands = [b + 1 for b in _color_bands(ds.count, alpha)]
+            dest = np.full((len(bands),) + shape, np.nan, np.float32)
+            reproject(rasterio.band(ds, bands), dest, src_transform=ds.transform, src_crs=ds.crs,
+                      src_nodata=ds.nodata, src_alpha=0 if alpha is None else alpha + 1,
+                      dst_transform=capture.affine @ Affine.scale(factor), dst_crs=capture.crs, dst_nodata=np.nan,
+                      resampling=Resampling.average)
+            eight_bit &= ds.dtypes[bands[0] - 1] == "uint8"
+        if out is None:
+            out = dest if len(bands) == 3 else np.repeat(dest[:1], 3, axis=0)
+        else:
+            fill = ~np.isfinite(out).all(axis=0) & np.isfinite(dest).all(axis=0)
+            out[:, fill] = (dest if len(bands) == 3 else np.repeat(dest[:1], 3, axis=0))[:, fill]
+    return _to_rgba(out, eight_bit)
+
+
+def _to_rgba(bands, eight_bit):
+    """``(n, h, w)`` float bands (NaN: no data) -> uint8 RGBA ``(h, w, 4)``."""
+    valid = np.isfinite(bands).all(axis=0)
+    if eight_bit:
+        scaled = bands
+    else:
+        lo, hi = np.percentile(bands[:, valid], _STRETCH) if valid.any() else (0.0, 1.0)
+        scaled = (bands - lo) * (255.0 / max(float(hi - lo), 1e-12))
+    rgb = np.clip(np.nan_to_num(scaled, nan=0.0) + 0.5, 0, 255).astype(np.uint8)
+    rgb = np.repeat(rgb, 3, axis=0) if rgb.shape[0] == 1 else rgb
+    return np.concatenate([np.moveaxis(rgb, 0, -1), (valid * 255).astype(np.uint8)[..., None]], axis=-1)
