@@ -11,8 +11,8 @@ other capture and night are kept).
 Written with pystac as a self-contained catalog: every link and asset href is
 relative, so the folder can be moved or served as it is.
 
-An Item (id: the capture's folder below the survey folder, ``/`` as ``__``,
-then ``__`` and the night):
+An Item (id: the capture's folder below ``captures/``, ``/`` as ``__``, then
+``__`` and the night):
 
 - geometry and bbox: the capture's nominal footprint (the bounds of its
   ground-frame mask's grid) in WGS 84;
@@ -134,7 +134,9 @@ def _item(row, folder, item_id):
 
 
 def _item_id(out, folder, night):
-    name = os.path.relpath(folder, out).replace(os.sep, "/")
+    """The capture's folder below ``out/captures/`` (else below ``out``), ``/`` as ``__``, and the night."""
+    base = out / "captures" if Path(folder).is_relative_to(out / "captures") else out
+    name = os.path.relpath(folder, base).replace(os.sep, "/")
     return f"{name.replace('/', '__')}__{night}"
 
 

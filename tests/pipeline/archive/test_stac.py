@@ -50,7 +50,7 @@ def test_the_catalog_reads_back_and_every_asset_resolves(night1):
     (collection,) = pystac.Catalog.from_file(str(catalog)).get_children()
     assert collection.id == COLLECTION_ID and isinstance(collection, pystac.Collection)
     items = _items(catalog)
-    assert [i.id for i in items] == [f"captures__flight__{n}__{NIGHT1}" for n in ("a", "b")]
+    assert [i.id for i in items] == [f"flight__{n}__{NIGHT1}" for n in ("a", "b")]
     for item in items:
         assert set(item.assets) == {"change_mask", "change_mask_reference", "change_score", "changes", "store",
                                     "report", "thumbnail"}
@@ -132,9 +132,9 @@ def test_the_next_night_keeps_earlier_items_and_a_redone_capture_replaces_its_ow
     _capture(root, NIGHT2, "a", (0, 0), (96, 128), [])  # a redone: its folder replaced, a new attempt
     catalog = update_catalog(root / "out", done_rows(root / "out"))
     items = {i.id: i for i in _items(catalog)}
-    assert sorted(items) == sorted([f"captures__flight__a__{NIGHT2}", f"captures__flight__b__{NIGHT1}",
-                                    f"captures__flight__c__{NIGHT2}"])
-    b = f"captures__flight__b__{NIGHT1}"
+    assert sorted(items) == sorted([f"flight__a__{NIGHT2}", f"flight__b__{NIGHT1}",
+                                    f"flight__c__{NIGHT2}"])
+    b = f"flight__b__{NIGHT1}"
     assert json.dumps(items[b].to_dict(), sort_keys=True) == before[b]
     for item in items.values():
         for asset in item.assets.values():

@@ -204,6 +204,12 @@ def test_a_night_writes_its_history_catalog_and_map(first_night):
     items = list(pystac.Catalog.from_file(str(out / "stac" / "catalog.json")).get_items(recursive=True))
     assert sorted(i.properties["rsmb:capture"] for i in items) == sorted(c["capture"] for c in done)
     assert all(os.path.exists(a.get_absolute_href()) for i in items for a in i.assets.values())
+    import odc.stac
+
+    night = odc.stac.load(items, bands=["change_mask_reference"], crs=reference_crs.to_string(), resolution=0.5,
+                          groupby="rsmb:night")["change_mask_reference"]
+    assert night.sizes["time"] == 1 and set(np.unique(night.values)) <= {0, 1, 255}
+    assert (night.values == 1).any() and (night.values == 0).any()
     page = (out / "index.html").read_text()
     assert f"{len(fields[0])} new</b>" in page and "<img class='map' src='map.png'" in page
     assert (out / "map.png").stat().st_size > 0
