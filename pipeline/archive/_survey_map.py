@@ -37,6 +37,17 @@ def _path(geometry):
     return MPath.make_compound_path(*rings) if rings else None
 
 
+def _crs_name(crs):
+    """A short name of the history's CRS for the axis label (its code, else its name)."""
+    from pyproj import CRS
+
+    if crs is None:
+        return "no CRS"
+    crs = CRS.from_user_input(crs)
+    code = crs.to_authority()
+    return f"{crs.name} ({':'.join(code)})" if code else crs.name
+
+
 def _patches(geometries, **style):
     from matplotlib.collections import PathCollection
 
@@ -88,7 +99,7 @@ def write_map(path, history, *, width_px=900):
     ax.set_aspect("equal")
     ax.ticklabel_format(useOffset=False, style="plain")
     ax.tick_params(labelsize=8)
-    ax.set_xlabel("x (history CRS units)", fontsize=9)
+    ax.set_xlabel(f"x, {_crs_name(history.crs)}", fontsize=9)
     ax.set_ylabel("y", fontsize=9)
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     fig.tight_layout()
