@@ -193,3 +193,25 @@ def test_the_history_is_in_the_reference_crs(tmp_path):
     x = [c for c in history.changes if c.captures == [str(tmp_path / "incoming" / "a.tif")]]
     assert len(x) == 1
     assert np.allclose([x[0].geometry.centroid.x, x[0].geometry.centroid.y], expected, atol=0.05)
+
+
+def test_the_map_draws_footprints_and_changes_by_status(three_nights, tmp_path):
+    """After night 3 the map holds a new change (red fill) and no persisting one (orange in the legend
+    only); the latest night's footprint is outlined in blue."""
+    from PIL import Image
+
+    from rsmb.pipeline.archive._survey_map import STATUS_COLOURS, write_map
+
+    _, (*_, third) = three_nights
+    rgb = np.asarray(Image.open(write_map(tmp_path / "map.png", third)).convert("RGB")).reshape(-1, 3)
+
+    def present(colour):
+        want = np.array([int(colour[i:i + 2], 16) for i in (1, 3, 5)])
+        return int((np.abs(rgb.astype(int) - want).max(axis=1) <= 8).sum())
+
+    legend_marker = 200  # the legend's marker of each status is smaller than this many pixels
+    assert present(STATUS_COLOURS["new"]) > legend_marker
+    assert present(STATUS_COLOURS["persisting"]) < legend_marker
+    # the blue outline (antialiased: blue-dominant pixels) is far longer than the legend patch's
+    blue = (rgb[:, 2].astype(int) - rgb[:, 0].astype(int) > 80).sum()
+    assert blue > 500
