@@ -357,8 +357,9 @@ def update_history(out, rows, night, crs):
     out : path-like
         The survey folder.
     rows : sequence of LedgerRow
-        The ledger's latest attempts (:meth:`Ledger.captures`); those ``done`` with an output folder
-        holding the ground-frame mask and not yet taken in are observations, grouped by their night.
+        The latest done attempt of each capture (:func:`pipeline.archive._night_end.latest_done`);
+        those whose output folder holds the ground-frame mask and that are not taken in yet are
+        observations, grouped by their night (other rows are passed over).
     night : str
         Tonight's name (for the counts returned).
     crs : str
