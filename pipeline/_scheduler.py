@@ -27,6 +27,9 @@ import dask
 import dask.callbacks
 
 from rsmb.ops import InputError, ParameterError, RunError
+
+#: Seconds a cluster run waits with no dask worker left before it fails.
+WORKER_TIMEOUT = 60.0
 from rsmb.ops._errors import one_line
 
 __all__ = ["SCHEDULERS", "Runner", "check_scheduler", "configure_process", "open_runner"]
@@ -173,7 +176,7 @@ class Runner:
         Seconds a distributed run waits with no worker left before it gives up.
     """
 
-    def __init__(self, scheduler, client=None, workers=None, pool=None, progress=True, worker_timeout=60.0):
+    def __init__(self, scheduler, client=None, workers=None, pool=None, progress=True, worker_timeout=WORKER_TIMEOUT):
         self.scheduler = scheduler
         self.client = client
         self.workers = workers
@@ -301,7 +304,7 @@ def _check_jobqueue(kind):
 
 
 @contextlib.contextmanager
-def open_runner(scheduler="threads", *, workers=None, shared=False, progress=True, worker_timeout=60.0):
+def open_runner(scheduler="threads", *, workers=None, shared=False, progress=True, worker_timeout=WORKER_TIMEOUT):
     """A :class:`Runner` for ``scheduler`` (see the module docstring).
 
     ``shared`` gives a local scheduler one executor of ``workers`` (default: one

@@ -36,7 +36,7 @@ from ._depthmap import _geometry, _sample, depth_map
 from ._layers import depth_layers
 from .._oracle import _huber_loss, optimal_chi
 from ..registration._rowproblem import _centroid, _Solver
-from ..registration._rowsolve import _solve_huber_nn
+from ..registration._rowsolve import MAX_ADD, MAX_OUTER, TOL, _solve_huber_nn
 from .._warp import _inverse_map
 
 __all__ = ["AlternateParams", "depth_step"]
@@ -58,9 +58,9 @@ class AlternateParams:
 
     rounds: int = 2
     min_share: float = 0.05
-    tol: float = 1e-6
-    max_outer: int = 100
-    max_add: int = 32
+    tol: float = TOL
+    max_outer: int = MAX_OUTER
+    max_add: int = MAX_ADD
 
 
 def depth_step(registration, reference, distorted, *, camera, threshold, space, lambda_w, lambda_chi,

@@ -8,8 +8,13 @@ import numpy as np
 
 from .._errors import ParameterError
 from .._posespace import PoseSpace
+from ._rowsolve import MAX_ADD, MAX_OUTER, TOL
 
-__all__ = ["RegistrationParams", "auto_step"]
+__all__ = ["RegistrationParams", "SEARCH", "auto_step"]
+
+#: Largest motion the wide initial search covers by default, per axis (+-, units
+#: of :data:`ops.AXIS_UNITS`); ``RegistrationParams(search=None)`` takes it for its axes.
+SEARCH = {"tx": 20.0, "ty": 20.0, "s": 0.0, "rx": 0.0, "ry": 0.0, "rz": 3.0}
 
 
 @dataclass(frozen=True)
@@ -26,8 +31,9 @@ class RegistrationParams:
         (:func:`auto_step`) and the half-width is three steps, so tx, ty
         N(c, 3, 1) px as in the paper, and rz steps that shrink as images grow
         (the paper's rz N(c, 2, 0.5) deg suits its 256 x 384 images only).
-    search : tuple of float
-        Largest motion the wide initial search covers, per axis (+-).
+    search : tuple of float or None
+        Largest motion the wide initial search covers, per axis (+-); None:
+        :data:`SEARCH` of each axis.
     shutter : {"rolling", "global"}
         "global" solves one weight vector for every row.
     solver : {"fast", "exact"}
@@ -65,9 +71,9 @@ class RegistrationParams:
     """
 
     axes: tuple = ("tx", "ty", "rz")
-    half_width: tuple = (3.0, 3.0, None)
-    step: tuple = (1.0, 1.0, None)
-    search: tuple = (20.0, 20.0, 3.0)
+    half_width: tuple = (None,)
+    step: tuple = (None,)
+    search: tuple | None = None
     shutter: str = "rolling"
     solver: str = "fast"
     lambda_w: float = 1e-3
@@ -75,9 +81,9 @@ class RegistrationParams:
     block_rows: int = 7
     homogeneous: float = 0.2
     adapt: bool = True
-    tol: float = 1e-6
-    max_outer: int = 100
-    max_add: int = 8
+    tol: float = TOL
+    max_outer: int = MAX_OUTER
+    max_add: int = MAX_ADD
     gain_slope: bool = True
     slow_axes: tuple = ("rx", "ry")
     slow_search: float = 3.0
@@ -93,7 +99,8 @@ class RegistrationParams:
         n = len(axes)
         hw = _per_axis(self.half_width, n, "half_width")
         st = _per_axis(self.step, n, "step")
-        search = _per_axis(self.search, n, "search")
+        search = tuple(SEARCH.get(a, 0.0) for a in axes) if self.search is None else self.search
+        search = _per_axis(search, n, "search")
         if None in search:
             raise ParameterError(f"search: expected a number per axis, got {self.search}")
         object.__setattr__(self, "axes", axes)

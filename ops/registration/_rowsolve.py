@@ -28,6 +28,11 @@ import numpy as np
 
 from .._oracle import optimal_chi
 
+#: The row solver's settings, one source for every caller (the registration's
+#: rows, the depth re-solve, :func:`solve_row_fast`): relative KKT tolerance,
+#: outer iterations, poses added to the working set per iteration.
+TOL, MAX_OUTER, MAX_ADD = 1e-6, 100, 8
+
 __all__ = []
 
 _JIT = dict(nogil=True, cache=True)
@@ -375,7 +380,7 @@ def _synthesize(a, w, out):
                 out[j] += w[k] * a[k, j]
 
 
-def solve_row_fast(F, g, *, lambda_w, lambda_chi, w0=None, tol=1e-7, max_outer=100, max_add=32):
+def solve_row_fast(F, g, *, lambda_w, lambda_chi, w0=None, tol=TOL, max_outer=MAX_OUTER, max_add=MAX_ADD):
     """Fast exact solve of eq. 13 for one row (or a stacked block of rows).
 
     Parameters
@@ -388,8 +393,9 @@ def solve_row_fast(F, g, *, lambda_w, lambda_chi, w0=None, tol=1e-7, max_outer=1
         Weights of ``||w||_1`` and ``||chi||_1`` in eq. 13.
     w0 : ndarray, shape (K,), optional
         Warm start (non-negative).
-    tol : float
-        Relative KKT tolerance.
+    tol, max_outer, max_add : float, int, int
+        Relative KKT tolerance, outer iterations, poses added per iteration
+        (defaults :data:`TOL`, :data:`MAX_OUTER`, :data:`MAX_ADD`).
 
     Returns
     -------

@@ -46,7 +46,7 @@ from ._fuse import _agreement, _fuse, _outliers
 from ._outputs import _check_outputs, _finished, write_products
 from ._overview import slow_stage
 from ._plan import VERSION, DetectConfig, DetectResult, _plan
-from .._scheduler import check_scheduler, open_runner
+from .._scheduler import WORKER_TIMEOUT, check_scheduler, open_runner
 from ..report._previews import write_previews
 
 __all__ = ["detect"]
@@ -298,7 +298,7 @@ def _store_lock(output):
 
 
 def detect(reference, distorted, output, *, config=None, scheduler="threads", workers=None, overwrite=False,
-           resume=False, geotiff=None, runner=None, worker_timeout=60.0):
+           resume=False, geotiff=None, runner=None, worker_timeout=WORKER_TIMEOUT):
     """Register ``distorted`` against ``reference`` and write the change store.
 
     Parameters

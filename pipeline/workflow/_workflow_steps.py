@@ -9,6 +9,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from rsmb import ops
 
+from .._options import METHOD_DEFAULTS as _D
+
 __all__ = ["DetectOptions", "DetectStep", "EvaluateStep", "ReportStep", "STEPS", "SurveyStep", "SynthStep",
            "Workflow"]
 
@@ -28,25 +30,31 @@ def _per_axis(value):
     return value if isinstance(value, list) else [value]
 
 
+def _listed(text):
+    """A default of :data:`METHOD_DEFAULTS` in the list form of these models."""
+    return [v if v.isalpha() else float(v) for v in _per_axis(text)]
+
+
 class _MethodOptions(_Model):
     """The options of the method shared by ``rsmb detect`` and ``rsmb survey``
-    (same names, underscores for dashes)."""
+    (same names, underscores for dashes; the same defaults, from
+    :data:`pipeline._options.METHOD_DEFAULTS`)."""
 
-    axes: list[_Axis] = ["tx", "ty", "rz"]
-    half_width: list[Annotated[float, Field(ge=0)] | _Auto] = ["auto"]
-    step: list[Annotated[float, Field(gt=0)] | _Auto] = ["auto"]
-    search: list[Annotated[float, Field(ge=0)]] | None = None
-    slow_axes: list[Literal["rx", "ry", "none"]] = ["rx", "ry"]
-    shutter: Literal["rolling", "global"] = "rolling"
-    solver: Literal["fast", "exact"] = "fast"
-    lambda_w: Annotated[float, Field(ge=0)] = 1e-3
-    lambda_chi: Annotated[float, Field(gt=0)] = 0.02
-    threshold: Literal["noise", "kapur"] | Annotated[float, Field(gt=0)] = "noise"
-    min_area: Annotated[int, Field(ge=0)] = 20
-    no_layers: bool = False
-    focal: Annotated[float, Field(gt=0)] | None = None
-    tile_size: Annotated[int, Field(ge=32)] | None = None
-    overlap: Annotated[int, Field(ge=0)] | None = None
+    axes: list[_Axis] = _listed(_D["axes"])
+    half_width: list[Annotated[float, Field(ge=0)] | _Auto] = _listed(_D["half_width"])
+    step: list[Annotated[float, Field(gt=0)] | _Auto] = _listed(_D["step"])
+    search: list[Annotated[float, Field(ge=0)]] | None = _D["search"]
+    slow_axes: list[Literal["rx", "ry", "none"]] = _listed(_D["slow_axes"])
+    shutter: Literal["rolling", "global"] = _D["shutter"]
+    solver: Literal["fast", "exact"] = _D["solver"]
+    lambda_w: Annotated[float, Field(ge=0)] = _D["lambda_w"]
+    lambda_chi: Annotated[float, Field(gt=0)] = _D["lambda_chi"]
+    threshold: Literal["noise", "kapur"] | Annotated[float, Field(gt=0)] = _D["threshold"]
+    min_area: Annotated[int, Field(ge=0)] = _D["min_area"]
+    no_layers: bool = _D["no_layers"]
+    focal: Annotated[float, Field(gt=0)] | None = _D["focal"]
+    tile_size: Annotated[int, Field(ge=32)] | None = _D["tile_size"]
+    overlap: Annotated[int, Field(ge=0)] | None = _D["overlap"]
 
     @field_validator("axes", "half_width", "step", "search", "slow_axes", mode="before")
     @classmethod
@@ -115,7 +123,7 @@ class SurveyStep(_MethodOptions):
     output: Path
     parallel: Annotated[int, Field(ge=1)] | None = None
     workers: Annotated[int, Field(ge=1)] | None = None
-    worker_timeout: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 60.0
+    worker_timeout: Annotated[float, Field(gt=0, allow_inf_nan=False)] = _D["worker_timeout"]
     report: bool = True
 
     @field_validator("references", mode="before")
