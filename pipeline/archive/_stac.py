@@ -42,6 +42,8 @@ import os
 import shutil
 from pathlib import Path
 
+from rsmb import tiles
+
 __all__ = ["COLLECTION_ID", "STAC_DIR", "update_catalog", "capture_datetime"]
 
 STAC_DIR = "stac"
@@ -233,7 +235,7 @@ def _save(out, stac, catalog):
     """The catalog built in ``.stac.partial`` (same depth as ``stac/``: relative hrefs hold) and renamed."""
     import pystac
 
-    aside, old = out / f".{STAC_DIR}.partial", out / f".{STAC_DIR}.replaced"
+    aside = out / f".{STAC_DIR}.partial"
     shutil.rmtree(aside, ignore_errors=True)
     catalog.normalize_hrefs(str(aside / "catalog.json"))  # a folder name with a dot reads as a file
     catalog.make_all_asset_hrefs_relative()
@@ -241,9 +243,5 @@ def _save(out, stac, catalog):
         for asset in child.assets.values():  # the collection's own assets (the history)
             asset.href = os.path.relpath(asset.href, os.path.dirname(child.get_self_href()))
     catalog.save(catalog_type=pystac.CatalogType.SELF_CONTAINED)
-    shutil.rmtree(old, ignore_errors=True)
-    if stac.exists():
-        os.replace(stac, old)
-    os.replace(aside, stac)
-    shutil.rmtree(old, ignore_errors=True)
+    tiles.swap_into_place(aside, stac, overwrite=True)  # the catalog of every night so far replaces the last one
     return stac / "catalog.json"
