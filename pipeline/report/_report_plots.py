@@ -16,9 +16,12 @@ written in threads at once); :func:`save` writes it as a PNG (or JPEG).  Figures
 
 import numpy as np
 from matplotlib import colormaps
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Rectangle
+from matplotlib.ticker import ScalarFormatter
 
 __all__ = ["before_after_figure", "save", "score_figure", "tile_map_figure", "trajectory_figure"]
 
@@ -191,9 +194,10 @@ def tile_map_figure(values, *, cmap, title, label, fmt, lo=None, hi=None, marked
     image = ax.imshow(values, cmap=colormaps[cmap].with_extremes(bad=_NAN_GRAY), vmin=lo, vmax=hi,
                       interpolation="nearest")
     size = 11 if cell >= 60 else 8 if cell >= 40 else 6
+    colours = image.to_rgba(np.ma.masked_invalid(values))
     for (i, j), v in np.ndenumerate(values):
         text = "n/a" if not np.isfinite(v) else format(v, fmt)
-        dark = np.isfinite(v) and (v - lo) / (hi - lo) < 0.5
+        dark = float(colours[i, j, :3] @ np.array([0.299, 0.587, 0.114])) < 0.5  # white text on dark cells
         ax.text(j, i, text, ha="center", va="center", fontsize=size, color="white" if dark else "black")
     for y, x in marked:
         ax.add_patch(Rectangle((x - 0.45, y - 0.45), 0.9, 0.9, fill=False, edgecolor="red", linestyle="--",
@@ -208,9 +212,10 @@ def tile_map_figure(values, *, cmap, title, label, fmt, lo=None, hi=None, marked
     ax.set_ylabel("tile row")
     ax.set_title(title)
     cax = _axes_px(fig, 60 + tx * cell + 20, 50, 18, ty * cell)
-    bar = fig.colorbar(image, cax=cax)
+    bar = fig.colorbar(image, cax=cax, format=ScalarFormatter(useOffset=False))  # 1.0004, not 0.0004 + 1
     bar.set_label(label + (f"; line: {line[1]}" if line else ""))
-    if line:
+    if line:  # black on a white halo: seen on dark and light colours
+        cax.axhline(line[0], color="white", linewidth=4)
         cax.axhline(line[0], color="black", linewidth=2)
     return fig
 
@@ -224,7 +229,8 @@ def score_figure(score, *, vmax, threshold=None, factor=1, zoom=1):
     Parameters
     ----------
     score : ndarray, shape (h, w)
-        The (block-maximum) score; NaN drawn white.
+        The (block-maximum) score; NaN drawn white.  Coloured by inferno on
+        ``[0, vmax]`` before it is drawn.
     vmax : float
     threshold : float, optional
         Marked in cyan on the colorbar.
@@ -238,8 +244,10 @@ def score_figure(score, *, vmax, threshold=None, factor=1, zoom=1):
     fig = _px_figure(w * zoom + 230, h * zoom + 100)
     ax = _axes_px(fig, 80, 60, w * zoom, h * zoom)
     cmap = colormaps["inferno"].with_extremes(bad="white")
-    image = ax.imshow(score, cmap=cmap, vmin=0.0, vmax=vmax, interpolation="nearest", resample=False,
-                      extent=(0, w * factor, h * factor, 0))
+    with np.errstate(invalid="ignore"):  # coloured here: a lookup, where imshow would normalise a masked copy
+        rgba = cmap(score / np.float32(vmax), bytes=True)
+    ax.imshow(rgba, interpolation="nearest", resample=False, extent=(0, w * factor, h * factor, 0))
+    image = ScalarMappable(norm=Normalize(0.0, vmax), cmap=cmap)
     ax.set_title("Change score")
     ax.set_xlabel("column (px)")
     ax.set_ylabel("row (px)")

@@ -444,7 +444,8 @@ def test_score_figure_draws_each_value_as_a_square_and_marks_the_threshold(tmp_p
 
     fig = score_figure(score, vmax=0.5, threshold=0.25, zoom=4)
     ax, cax = fig.axes
-    np.testing.assert_array_equal(np.ma.getdata(ax.images[0].get_array()), score)
+    np.testing.assert_array_equal(ax.images[0].get_array(),
+                                  colormaps["inferno"].with_extremes(bad="white")(score / 0.5, bytes=True))
     assert cax.get_ylim() == (0.0, 0.5)
     cyan = [line for line in cax.lines if line.get_color() == "cyan"]
     assert len(cyan) == 1 and list(cyan[0].get_ydata()) == [0.25, 0.25]
