@@ -17,6 +17,7 @@ import html
 import os
 from pathlib import Path
 
+from ..report._previews import read_preview, reduce_preview
 from ..report._report_figures import block_reduce, overlay_rgb
 
 __all__ = ["write_index", "write_thumbnail"]
@@ -26,13 +27,20 @@ THUMBNAIL = 256  # px, the longer side
 
 def write_thumbnail(group, path, *, side=THUMBNAIL):
     """The change overlay (:func:`overlay_rgb`) of a detect store, reduced so
-    that its longer side is at most ``side`` pixels."""
+    that its longer side is at most ``side`` pixels: on the capture in its own
+    colours (the store's ``preview_capture``), or on the registered reference
+    for a store without previews."""
     from PIL import Image
 
-    h, w = group["change_mask"].shape
-    factor = max(1, -(-max(h, w) // side))
-    rgb = overlay_rgb(block_reduce(group["registered"], factor, "mean"),
-                      block_reduce(group["change_mask"], factor, "max"))
+    preview, step = read_preview(group, "preview_capture")
+    if preview is None:
+        h, w = group["change_mask"].shape
+        factor = max(1, -(-max(h, w) // side))
+        image = block_reduce(group["registered"], factor, "mean")
+    else:
+        k = max(1, -(-max(preview.shape[:2]) // side))
+        factor, image = step * k, reduce_preview(preview, k)
+    rgb = overlay_rgb(image, block_reduce(group["change_mask"], factor, "max"))
     Image.fromarray(rgb, mode="RGB").save(path, compress_level=3)
     return Path(path)
 

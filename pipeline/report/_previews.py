@@ -32,7 +32,7 @@ import numpy as np
 
 from ._report_figures import _reduce_band
 
-__all__ = ["PREVIEW_NAMES", "PREVIEW_SIDE", "preview_factor", "read_preview", "write_previews"]
+__all__ = ["PREVIEW_NAMES", "PREVIEW_SIDE", "preview_factor", "read_preview", "reduce_preview", "write_previews"]
 
 PREVIEW_SIDE = 1024  # px, the longer side of a preview at most
 PREVIEW_NAMES = ("preview_reference", "preview_capture")
@@ -84,6 +84,15 @@ def read_preview(group, name):
         return None, None
     array = group[name]
     return np.asarray(array[:]), int(array.attrs.get("factor", 1))
+
+
+def reduce_preview(rgba, factor):
+    """A preview ``factor`` times smaller on a side: block mean of the colours
+    of its pixels with data; alpha 0 where a block has none."""
+    if factor == 1:
+        return rgba
+    bands = np.where(rgba[..., 3] > 0, np.moveaxis(rgba[..., :3], -1, 0).astype(np.float32), np.float32(np.nan))
+    return _to_rgba(np.stack([_reduce_band(b, factor, "mean") for b in bands]), True)
 
 
 # --------------------------------------------------------------------------- reading the inputs

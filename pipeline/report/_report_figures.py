@@ -151,8 +151,9 @@ def overlay_rgb(gray, mask, row_lines=(), col_lines=()):
 
     Parameters
     ----------
-    gray : ndarray, shape (h, w)
-        Image, any range; NaN where unknown (drawn dark blue).
+    gray : ndarray, shape (h, w), or uint8 RGBA, shape (h, w, 4)
+        Image, any range; NaN where unknown (drawn dark blue).  Or an input
+        preview (:mod:`._previews`), drawn in its colours; alpha 0 unknown.
     mask : ndarray, shape (h, w)
         Nonzero where changed: filled red, outlined yellow; components of a
         few pixels also get a yellow ring.
@@ -163,11 +164,15 @@ def overlay_rgb(gray, mask, row_lines=(), col_lines=()):
     -------
     ndarray, uint8, shape (h, w, 3)
     """
-    finite = np.isfinite(gray)
-    lo, hi = np.percentile(gray[finite], [0.5, 99.5]) if finite.any() else (0.0, 1.0)
-    g = np.clip((np.where(finite, gray, lo) - lo) / max(float(hi - lo), 1e-6), 0.0, 1.0).astype(np.float32)
-    rgb = np.repeat(g[..., None], 3, axis=-1)
-    del g
+    if gray.ndim == 3:
+        finite = gray[..., 3] > 0
+        rgb = gray[..., :3].astype(np.float32) / np.float32(255.0)
+    else:
+        finite = np.isfinite(gray)
+        lo, hi = np.percentile(gray[finite], [0.5, 99.5]) if finite.any() else (0.0, 1.0)
+        g = np.clip((np.where(finite, gray, lo) - lo) / max(float(hi - lo), 1e-6), 0.0, 1.0).astype(np.float32)
+        rgb = np.repeat(g[..., None], 3, axis=-1)
+        del g
     rgb[~finite] = _NAN_RGB
     rows, cols = list(row_lines), list(col_lines)
     rgb[rows, :] = (1 - _GRID_ALPHA) * rgb[rows, :] + _GRID_ALPHA * _GRID_RGB

@@ -188,7 +188,7 @@ def tile_map_figure(values, *, cmap, title, label, fmt, lo=None, hi=None, marked
     if hi <= lo:
         pad = max(1e-3 * abs(lo), 1e-6)
         lo, hi = lo - pad, hi + pad
-    cell = int(np.clip(480 // max(tx, ty), 24, 90))
+    cell = int(np.clip(480 // max(tx, ty), 24, 130))  # a few tiles: tall enough for the colorbar label
     fig = _px_figure(tx * cell + 230, ty * cell + 110)
     ax = _axes_px(fig, 60, 50, tx * cell, ty * cell)
     image = ax.imshow(values, cmap=colormaps[cmap].with_extremes(bad=_NAN_GRAY), vmin=lo, vmax=hi,

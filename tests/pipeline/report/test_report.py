@@ -628,3 +628,33 @@ def test_before_after_figure_outlines_the_changes_on_both():
     circles = [c for c in fig.axes[1].collections if not hasattr(c, "levels")]
     assert len(circles) == 1 and circles[0].get_offsets().tolist() == [[5.5 * 4, 40.5 * 4]]
     assert not [c for c in fig.axes[0].collections if not hasattr(c, "levels")]  # no small change there
+
+
+def test_overlay_of_a_preview_keeps_its_colours():
+    """An RGBA preview: its colours where nothing changed, red over a change,
+    dark blue where alpha is 0."""
+    rgba = np.zeros((20, 30, 4), np.uint8)
+    rgba[..., 2], rgba[..., 3] = 180, 255
+    rgba[:2, :2, 3] = 0
+    mask = np.zeros((20, 30), np.uint8)
+    mask[8:14, 8:14] = 1
+    rgb = overlay_rgb(rgba, mask).astype(int)
+    assert tuple(rgb[18, 25]) == (0, 0, 180)
+    assert rgb[10, 10, 0] > 100 and rgb[10, 10, 0] > rgb[10, 10, 1]
+    assert tuple(rgb[0, 0]) == tuple((np.array([0.16, 0.18, 0.32]) * 255 + 0.5).astype(int))
+
+
+def test_reduce_preview_averages_pixels_with_data():
+    from rsmb.pipeline.report._previews import reduce_preview
+
+    rgba = np.zeros((4, 6, 4), np.uint8)
+    rgba[..., 0] = np.arange(6, dtype=np.uint8) * 10
+    rgba[..., 3] = 255
+    rgba[0, 0, 3] = 0  # left out of its block's mean
+    rgba[2:, 4:, 3] = 0  # a block without data
+    small = reduce_preview(rgba, 2)
+    assert small.shape == (2, 3, 4)
+    assert small[0, 0, 0] == 7  # (10 + 0 + 10) / 3 rounded
+    assert small[1, 0, 0] == 5 and small[0, 2, 0] == 45
+    assert small[1, 2, 3] == 0 and (small[..., 3].sum() == 5 * 255)
+    assert reduce_preview(rgba, 1) is rgba
