@@ -221,13 +221,17 @@ def _check_captures(ctx, param, value):
 @click.option("--parallel", type=click.IntRange(min=1), default=None,
               help="Captures detected at once (their tasks share the scheduler's workers; each one's products "
                    "and report are written beside the next ones' detection) [default: cores + 1].")
-@click.option("--dry-run", is_flag=True, help="Say what would run and why; write nothing.")
+@click.option("--settle", type=Number(min=0), default=60.0, show_default=True,
+              help="Seconds: a capture modified less long ago is still being written and waits for the next night "
+                   "(skipped, reason 'still being written').")
+@click.option("--dry-run", is_flag=True, help="Say what would run and why (new, changed, retry, still being "
+                                              "written, skip); write nothing.")
 @click.option("--no-report", is_flag=True, help="Skip each capture's HTML report.")
 @click.option("--json", "as_json", is_flag=True, help="Print the night's summary as JSON on stdout.")
 @click.pass_context
 def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes, search, shutter, solver, lambda_w,
            lambda_chi, threshold, min_area, no_layers, focal, tile_size, overlap, scheduler, workers, worker_timeout,
-           parallel, dry_run, no_report, as_json):
+           parallel, settle, dry_run, no_report, as_json):
     """A night of georeferenced captures (--captures GLOB) against REFERENCE files.
 
     Each capture gets a folder with its store, changes.gpkg, COGs, thumbnail
@@ -240,7 +244,8 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes
     config = build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold,
                           min_area, focal, tile_size, overlap, slow_axes=slow_axes, layers=not no_layers)
     result = run(references, captures, out_dir, config=config, scheduler=scheduler, workers=workers,
-                 parallel=parallel, dry_run=dry_run, worker_timeout=worker_timeout, report=not no_report)
+                 parallel=parallel, dry_run=dry_run, worker_timeout=worker_timeout, report=not no_report,
+                 settle=settle)
     if as_json:
         click.echo(json.dumps(result.as_dict(), indent=2))
     else:
@@ -248,8 +253,13 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes
             reason = c.reason.removeprefix(f"{c.capture}: ")  # an error names its file: the line does already
             detail = f" ({c.changes} changes)" if c.status == "done" else (f": {reason}" if reason else "")
             click.echo(f"{c.status:10s} {c.capture}{detail}")
-        click.echo(f"{result.done} done, {result.skipped} skipped, {result.failed} failed"
-                   + (f"; {result.index}" if result.index else ""))
+        if dry_run:
+            counts = {s: sum(c.status == f"would {s}" for c in result.captures) for s in ("run", "skip", "wait")}
+            click.echo(f"dry run: {counts['run']} to run, {counts['skip']} to skip, {counts['wait']} still being "
+                       f"written; nothing written")
+        else:
+            click.echo(f"{result.done} done, {result.skipped} skipped, {result.failed} failed"
+                       + (f"; {result.index}" if result.index else ""))
     if result.failed:
         ctx.exit(3)
 

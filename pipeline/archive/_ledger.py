@@ -23,7 +23,17 @@ driver on the same ledger is refused (an exclusive ``flock`` on
 ``ledger.sqlite.lock``, released by the kernel when the process dies).  The
 database is in WAL mode with ``synchronous=FULL`` and every change is one
 transaction, so a SIGKILL at any moment leaves either the state before or the
-state after that change.  An attempt left ``running`` by a night that was killed
+state after that change.  Where WAL does not work (network file systems: NFS,
+Lustre, SMB have no shared memory between hosts), the ledger says so in the
+log and uses the rollback journal (``DELETE``), with the same guarantees for
+its one writer: the probe sets WAL and writes one transaction with it; any
+refusal or error falls back.
+
+Files (table ``files``, schema version 2): the sha256 and image shape of every
+capture and reference file hashed, with the size, modification time (ns) and
+inode it had.  A file whose three are unchanged is not read again: a night with
+nothing new costs one ``stat`` per file (:meth:`Ledger.file_stats`).  A ledger
+of version 1 gains the table when opened for writing.  An attempt left ``running`` by a night that was killed
 is closed as ``failed`` (reason ``interrupted``) when the ledger is next opened
 for writing, so it counts as not done and is rerun.
 """
@@ -34,6 +44,7 @@ import contextlib
 import datetime as _dt
 import hashlib
 import json
+import logging
 import os
 import sqlite3
 from dataclasses import dataclass
@@ -42,13 +53,15 @@ from typing import Any, Iterator, Mapping, Sequence
 
 from rsmb.ops._errors import InputError, ParameterError
 
-__all__ = ["LEDGER_NAME", "SCHEMA_VERSION", "Decision", "Ledger", "LedgerRow", "RunKey",
+__all__ = ["LEDGER_NAME", "SCHEMA_VERSION", "Decision", "FileStat", "Ledger", "LedgerRow", "RunKey",
            "reference_set_digest"]
+
+log = logging.getLogger("rsmb")
 
 #: File name of the ledger inside a survey's output directory.
 LEDGER_NAME = "ledger.sqlite"
 #: Version of the tables below, stored as SQLite's ``user_version``.
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 STATUSES = ("running", "done", "failed")
 
 _SCHEMA = """
@@ -69,11 +82,28 @@ CREATE TABLE runs (
     outputs TEXT NOT NULL DEFAULT '{}'
 );
 CREATE INDEX runs_by_capture ON runs (capture, id);
+CREATE TABLE files (
+    path TEXT PRIMARY KEY,
+    size INTEGER NOT NULL,
+    mtime_ns INTEGER NOT NULL,
+    inode INTEGER NOT NULL,
+    sha256 TEXT NOT NULL,
+    shape TEXT NOT NULL
+);
 CREATE VIEW captures AS
     SELECT runs.* FROM runs
     JOIN (SELECT capture, MAX(id) AS id FROM runs GROUP BY capture) AS latest
     ON runs.id = latest.id;
 """
+_FILES = """
+CREATE TABLE files (
+    path TEXT PRIMARY KEY,
+    size INTEGER NOT NULL,
+    mtime_ns INTEGER NOT NULL,
+    inode INTEGER NOT NULL,
+    sha256 TEXT NOT NULL,
+    shape TEXT NOT NULL
+)"""
 _COLUMNS = ("id", "capture", "sha256", "key", "reference_paths", "reference_digest", "parameters",
             "version", "status", "reason", "night", "started", "finished", "outputs")
 
@@ -99,6 +129,23 @@ def reference_set_digest(sha256s: Sequence[str]) -> str:
 
 
 # --------------------------------------------------------------------------- values
+
+
+@dataclass(frozen=True)
+class FileStat:
+    """A file as hashed: its path, ``os.stat`` size, modification time (ns)
+    and inode then, its sha256 and its image shape (rows, cols)."""
+
+    path: str
+    size: int
+    mtime_ns: int
+    inode: int
+    sha256: str
+    shape: tuple[int, int]
+
+    def same_file(self, st: os.stat_result) -> bool:
+        """True when ``st`` (a new ``os.stat``) has the size, time and inode recorded."""
+        return (self.size, self.mtime_ns, self.inode) == (st.st_size, st.st_mtime_ns, st.st_ino)
 
 
 @dataclass(frozen=True)
@@ -215,6 +262,7 @@ class Ledger:
     def __init__(self, path: str | os.PathLike, *, readonly: bool = False) -> None:
         self.path = Path(path)
         self.readonly = readonly
+        self.journal = None
         self._lock = None if readonly else _lock(self.path)
         try:
             self._conn = self._connect()
@@ -236,9 +284,19 @@ class Ledger:
                                        isolation_level=None)
             else:
                 conn = sqlite3.connect(self.path, isolation_level=None)
-                mode = conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
-                if mode.lower() != "wal":
-                    raise InputError(f"{self.path}: cannot use WAL journal mode (got {mode})")
+                problem = _wal_problem(conn)
+                if problem is None:
+                    self.journal = "wal"
+                else:  # a network file system: the rollback journal works where WAL does not
+                    conn.close()
+                    conn = sqlite3.connect(self.path, isolation_level=None)
+                    mode = conn.execute("PRAGMA journal_mode=DELETE").fetchone()[0]
+                    if mode.lower() != "delete":
+                        raise InputError(f"{self.path}: neither WAL ({problem}) nor the rollback journal "
+                                         f"(got {mode}) works here")
+                    self.journal = "delete"
+                    log.warning("ledger %s: WAL unavailable on this file system (%s); using the rollback "
+                                "journal (DELETE)", self.path, problem)
                 conn.execute("PRAGMA synchronous=FULL")
             conn.execute("PRAGMA busy_timeout=10000")
             return conn
@@ -251,6 +309,13 @@ class Ledger:
             tables = self._conn.execute("SELECT count(*) FROM sqlite_master").fetchone()[0]
         except sqlite3.DatabaseError as exc:
             raise InputError(f"{self.path}: not a readable ledger ({_one_line(exc)})") from exc
+        if version == 1 and not self.readonly:  # version 2 adds the files' stat and hash
+            with self._transaction():
+                self._conn.execute(_FILES)
+                self._conn.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+            return
+        if version == 1 and self.readonly:
+            return  # read as it is: no files remembered yet
         if version == 0 and tables == 0 and not self.readonly:
             with self._transaction():  # one statement at a time: executescript would commit
                 for statement in _SCHEMA.split(";"):
@@ -319,7 +384,19 @@ class Ledger:
         -------
         Decision
         """
-        history = self.runs(capture=capture)
+        return self.decide_from(self.runs(capture=capture), run_key)
+
+    def history_by_capture(self) -> dict[str, list[LedgerRow]]:
+        """Every attempt, by capture, in the order they started (one query:
+        a night decides thousands of captures from it with :meth:`decide_from`)."""
+        history: dict[str, list[LedgerRow]] = {}
+        for row in self.runs():
+            history.setdefault(row.capture, []).append(row)
+        return history
+
+    @staticmethod
+    def decide_from(history: Sequence[LedgerRow], run_key: RunKey) -> Decision:
+        """:meth:`decide` on a capture's attempts ``history`` (oldest first)."""
         if not history:
             return Decision("run", "new capture")
         last = history[-1]
@@ -396,6 +473,27 @@ class Ledger:
             self._conn.execute("UPDATE runs SET status = 'failed', reason = ? WHERE capture = ? AND status = 'done'",
                                (_one_line(reason), capture))
 
+    # -- files
+
+    def file_stats(self) -> dict[str, FileStat]:
+        """Every file remembered (path -> :class:`FileStat`), in one query."""
+        if self._conn is None:
+            raise ParameterError(f"ledger: {self.path} is closed")
+        if not self._conn.execute("SELECT count(*) FROM sqlite_master WHERE name = 'files'").fetchone()[0]:
+            return {}  # a version-1 ledger read as it is
+        rows = self._conn.execute("SELECT path, size, mtime_ns, inode, sha256, shape FROM files").fetchall()
+        return {r[0]: FileStat(r[0], r[1], r[2], r[3], r[4], tuple(json.loads(r[5]))) for r in rows}
+
+    def remember_files(self, stats: Sequence[FileStat]) -> None:
+        """Record (or replace) files' stat and hash, in one transaction."""
+        if not stats:
+            return
+        with self._transaction():
+            self._conn.executemany(
+                "INSERT OR REPLACE INTO files (path, size, mtime_ns, inode, sha256, shape) VALUES (?, ?, ?, ?, ?, ?)",
+                [(f.path, int(f.size), int(f.mtime_ns), int(f.inode), f.sha256, json.dumps(list(f.shape)))
+                 for f in stats])
+
     # -- listings
 
     def runs(self, *, capture: str | None = None, night: str | None = None,
@@ -437,6 +535,20 @@ def _changes(previous: LedgerRow, run_key: RunKey) -> str:
     if not changes:  # same key, an earlier attempt that was neither done nor retried
         changes.append(f"previous attempt {previous.status}")
     return "; ".join(changes)
+
+
+def _wal_problem(conn: sqlite3.Connection) -> str | None:
+    """None when WAL works on ``conn``'s file (set, then one write transaction
+    committed with it), else what went wrong."""
+    try:
+        mode = conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+        if mode.lower() != "wal":
+            return f"journal_mode=WAL gave {mode}"
+        conn.execute("BEGIN IMMEDIATE")
+        conn.execute("COMMIT")
+    except sqlite3.Error as exc:
+        return _one_line(exc)
+    return None
 
 
 def _lock(path: Path):

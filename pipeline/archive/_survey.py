@@ -44,7 +44,7 @@ from rsmb.ops._errors import one_line
 
 from ..detection._detect import detect
 from ..detection._plan import VERSION, DetectConfig
-from ._ledger import LEDGER_NAME, Ledger, RunKey
+from ._ledger import LEDGER_NAME, FileStat, Ledger, RunKey
 from ..detection._outputs import write_products
 from .._scheduler import check_scheduler, open_runner
 
@@ -59,6 +59,8 @@ CAPTURES = "captures"
 #: so it pays the per-tile start once; the night's concurrency, not the tiles
 #: of one capture, keeps the cores busy.
 SURVEY_TILE = 1024
+#: Default ``settle``, seconds: a capture modified less long ago is still being copied in.
+SETTLE = 60.0
 _WILDCARDS = set("*?[")
 
 
@@ -198,7 +200,7 @@ def _parameters(config, shape=None):
 
 
 def survey(references, captures, out_dir, *, config=None, scheduler="threads", workers=None, parallel=None,
-           dry_run=False, worker_timeout=60.0, report=True):
+           dry_run=False, worker_timeout=60.0, report=True, settle=SETTLE):
     """Run a night: every capture the glob ``captures`` finds, against the
     georeferenced reference set ``references`` (DESIGN.md, "Survey archives").
 
@@ -225,6 +227,12 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         Say what would run and why; write nothing.
     report : bool
         Write each capture's ``report/``.
+    settle : float
+        Seconds: a capture modified less long ago is still being written and
+        waits for the next night (``skipped``, reason ``still being
+        written``; nothing recorded).  A capture whose size or modification
+        time changes during its detection is not recorded done (``failed``,
+        retried next night).
 
     Returns
     -------
@@ -245,14 +253,13 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
     found = find_captures(captures, out)
     night = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H-%M-%SZ")
     log.info("survey: %d capture(s) found by %s, %d reference file(s)", len(found), captures, len(references))
-    reference_shas = [tiles.probe_image(r).sha256 for r in references]  # once per night
     if dry_run:
-        return _dry_run(found, out, references, reference_shas, config)
+        return _dry_run(found, out, references, config, settle)
     out.mkdir(parents=True, exist_ok=True)
     with Ledger(out / LEDGER_NAME) as ledger:  # its lock first: nothing in the folder is touched before
         shutil.rmtree(out / PARTIAL, ignore_errors=True)  # folders a killed night left half-built
         _migrate_layout(out, ledger)
-        results = _night(ledger, found, out, references, reference_shas, night, config,
+        results = _night(ledger, found, out, references, night, config, settle,
                          dict(scheduler=scheduler, workers=workers, parallel=parallel,
                               worker_timeout=worker_timeout, report=report))
         result = SurveyResult(results, *(sum(r.status == s for r in results) for s in ("done", "skipped", "failed")),
@@ -268,49 +275,118 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
     return SurveyResult(result.captures, result.done, result.skipped, result.failed, night, str(summary), str(index))
 
 
-def _key(capture, references, reference_shas, config):
-    info = tiles.probe_image(capture)
-    return RunKey.build(info.sha256, reference_shas, references, _parameters(config, info.shape), VERSION)
+class _Fingerprints:
+    """sha256 and shape of files, read once and remembered in the ledger by
+    size, modification time and inode (:class:`FileStat`): a file whose
+    ``stat`` is unchanged is not read again.  New fingerprints are kept in
+    :attr:`new` until :meth:`save`."""
+
+    def __init__(self, ledger):
+        self.ledger = ledger
+        self.known = ledger.file_stats() if ledger is not None else {}
+        self.new = []
+        self.hashed = 0  # files read tonight
+
+    def get(self, path, st=None):
+        """(sha256, shape) of ``path``; ``st`` its ``os.stat`` if known."""
+        path = str(path)
+        try:
+            st = st or os.stat(path)
+        except OSError as exc:
+            raise InputError(f"{path}: cannot read file ({one_line(exc)})") from None
+        known = self.known.get(path)
+        if known is not None and known.same_file(st):
+            return known.sha256, known.shape
+        info = tiles.probe_image(path)
+        self.hashed += 1
+        try:
+            after = os.stat(path)
+        except OSError:
+            after = None
+        stat = FileStat(path, st.st_size, st.st_mtime_ns, st.st_ino, info.sha256, tuple(info.shape))
+        if after is not None and stat.same_file(after):  # a file that changed while read is not remembered
+            self.known[path] = stat
+            self.new.append(stat)
+        return info.sha256, tuple(info.shape)
+
+    def save(self):
+        if self.ledger is not None and not self.ledger.readonly:
+            self.ledger.remember_files(self.new)
+        self.new = []
 
 
-def _dry_run(found, out, references, reference_shas, config):
-    """What would run, and why: read-only (the ledger, if there is one)."""
-    ledger = Ledger(out / LEDGER_NAME, readonly=True) if (out / LEDGER_NAME).exists() else None
-    results = []
+def _decide_all(ledger, found, references, config, settle):
+    """Every capture's fate tonight, in the order found: a list of (capture,
+    name, what, detail) with what one of ``wait`` (detail: the reason),
+    ``fail`` (an RSMBError), ``skip`` (the Decision) and ``run`` ((RunKey,
+    Decision, its stat)).  A night with nothing new reads no file: a stat per
+    capture and reference (:class:`_Fingerprints`)."""
+    prints = _Fingerprints(ledger)
+    reference_shas = [prints.get(r)[0] for r in references]
+    history = ledger.history_by_capture() if ledger is not None else {}
+    now, fates = time.time(), []
     for capture, name in found:
         try:
-            key = _key(capture, references, reference_shas, config)
-            decision = ledger.decide(str(capture), key) if ledger else None
-            action, reason = (decision.action, decision.reason) if decision else ("run", "new capture")
-            results.append(CaptureResult(str(capture), f"would {action}", reason,
-                                         output=str(out / CAPTURES / name)))
-        except RSMBError as exc:
-            results.append(CaptureResult(str(capture), "would run", f"and fail: {one_line(exc)}"))
-    if ledger:
-        ledger.close()
+            st = os.stat(capture)
+            age = now - st.st_mtime
+            if age < settle:
+                fates.append((capture, name, "wait", f"still being written (modified {max(age, 0.0):.0f} s ago, "
+                                                     f"within --settle {settle:g} s): waits for the next night"))
+                continue
+            sha, shape = prints.get(capture, st)
+            key = RunKey.build(sha, reference_shas, references, _parameters(config, shape), VERSION)
+        except RSMBError as exc:  # unreadable: the ledger still hears of it
+            fates.append((capture, name, "fail", (exc, RunKey.build("unreadable", reference_shas, references,
+                                                                     _parameters(config), VERSION))))
+            continue
+        decision = Ledger.decide_from(history.get(str(capture), []), key)
+        fates.append((capture, name, "skip" if decision.action == "skip" else "run", (key, decision, st)))
+    prints.save()
+    log.info("survey: %d file(s) read and hashed, the others known by their stat", prints.hashed)
+    return fates
+
+
+def _dry_run(found, out, references, config, settle):
+    """What would run, and why (new, changed, retry, settling, skip):
+    read-only (the ledger, if there is one; no fingerprint is saved)."""
+    ledger = Ledger(out / LEDGER_NAME, readonly=True) if (out / LEDGER_NAME).exists() else None
+    results = []
+    try:
+        for capture, name, what, detail in _decide_all(ledger, found, references, config, settle):
+            if what == "wait":
+                results.append(CaptureResult(str(capture), "would wait", detail))
+            elif what == "fail":
+                results.append(CaptureResult(str(capture), "would run", f"and fail: {one_line(detail[0])}"))
+            else:
+                results.append(CaptureResult(str(capture), f"would {what}", detail[1].reason,
+                                             output=str(out / CAPTURES / name)))
+    finally:
+        if ledger:
+            ledger.close()
     return SurveyResult(results, 0, sum(r.status == "would skip" for r in results), 0)
 
 
-def _night(ledger, found, out, references, reference_shas, night, config, run):
+def _night(ledger, found, out, references, night, config, settle, run):
     """Decide every capture, run those to run (:func:`_run_all`), record each
     in the ledger as it ends.  Returns CaptureResults in the order found."""
     results, todo = {}, []
-    for capture, name in found:
-        try:
-            key = _key(capture, references, reference_shas, config)
-        except RSMBError as exc:  # unreadable: the ledger still hears of it
-            key = RunKey.build("unreadable", reference_shas, references, _parameters(config), VERSION)
+    for capture, name, what, detail in _decide_all(ledger, found, references, config, settle):
+        if what == "wait":  # nothing recorded: next night decides it afresh
+            results[capture] = CaptureResult(str(capture), "skipped", detail)
+            log.info("survey: %s: %s", name, detail)
+        elif what == "fail":
+            exc, key = detail
             results[capture] = _fail(ledger, ledger.start(str(capture), key, night=night), capture, exc, 0.0)
-            continue
-        decision = ledger.decide(str(capture), key)
-        if decision.action == "skip":
+        elif what == "skip":
+            decision = detail[1]
             previous = decision.previous.outputs
             results[capture] = CaptureResult(str(capture), "skipped", decision.reason, previous.get("reference", []),
                                              previous.get("output"), previous.get("vectors"),
                                              previous.get("changes"), previous.get("changed_m2"))
-            continue
-        log.info("survey: %s: %s", name, decision.reason)
-        todo.append((capture, name, ledger.start(str(capture), key, night=night), decision.reason))
+        else:
+            key, decision, st = detail
+            log.info("survey: %s: %s", name, decision.reason)
+            todo.append((capture, name, ledger.start(str(capture), key, night=night), decision.reason, st))
     if todo:  # a night with nothing to run opens no scheduler (no cluster jobs, no connection)
         results.update(_run_all(ledger, todo, out, references, config, run))
     return [results[capture] for capture, _ in found]
@@ -328,8 +404,8 @@ def _run_all(ledger, todo, out, references, config, run):
     with open_runner(run["scheduler"], workers=run["workers"], shared=True, progress=False,
                      worker_timeout=run["worker_timeout"]) as runner, \
             ThreadPoolExecutor(parallel + cores + 1) as driver:
-        futures = {driver.submit(_run_capture, capture, name, out, references, config, runner, run["report"], slots):
-                   (capture, name, run_id, why) for capture, name, run_id, why in todo}
+        futures = {driver.submit(_run_capture, capture, name, out, references, config, runner, run["report"], slots,
+                                 st): (capture, name, run_id, why) for capture, name, run_id, why, st in todo}
         for count, future in enumerate(as_completed(futures), 1):
             capture, name, run_id, why = futures[future]
             try:
@@ -355,11 +431,13 @@ def _fail(ledger, run_id, capture, exc, seconds):
     return CaptureResult(str(capture), "failed", reason, seconds=seconds or 0.0)
 
 
-def _run_capture(capture, name, out, references, config, runner, report, slots):
+def _run_capture(capture, name, out, references, config, runner, report, slots, st):
     """One capture, built aside and renamed into place: its store, products,
     thumbnail and report.  Runs in a driver thread; its tasks on ``runner``;
     its detection holds one of ``slots`` (a semaphore), its products and
-    report none.  A failure leaves nothing behind."""
+    report none.  A failure leaves nothing behind; so does a capture whose
+    size or modification time now differs from ``st`` (its stat when it was
+    hashed): it changed during its detection."""
     start = time.perf_counter()
     header = tiles.probe_header(capture)[1]
     if not tiles.is_georeferenced(header):
@@ -370,12 +448,25 @@ def _run_capture(capture, name, out, references, config, runner, report, slots):
     try:
         folder = out / CAPTURES / name
         features, read = _build(capture, aside, folder, references, config, runner, report, slots)
+        _check_unchanged(capture, st)
         folder.parent.mkdir(parents=True, exist_ok=True)
         tiles.swap_into_place(aside, folder, overwrite=True)  # a capture redone replaces its folder
     finally:
         shutil.rmtree(aside, ignore_errors=True)
     return CaptureResult(str(capture), "done", "", list(read), str(folder), str(folder / "changes.gpkg"),
                          len(features), float(sum(f.area_m2 for f in features)), time.perf_counter() - start)
+
+
+def _check_unchanged(capture, st):
+    """Raise :class:`InputError` when ``capture`` is no longer the file ``st``
+    described (size, modification time, inode)."""
+    try:
+        now = os.stat(capture)
+    except OSError as exc:
+        raise InputError(f"{capture}: gone during its detection ({one_line(exc)}): not recorded") from None
+    if (now.st_size, now.st_mtime_ns, now.st_ino) != (st.st_size, st.st_mtime_ns, st.st_ino):
+        raise InputError(f"{capture}: modified during its detection (size or modification time changed): not "
+                         f"recorded as done; it runs again next night")
 
 
 def _build(capture, aside, folder, references, config, runner, report, slots):

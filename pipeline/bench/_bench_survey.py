@@ -221,7 +221,7 @@ def bench_night(data, workdir, *, captures=8, side=1024, detect_side=4096):
                                       changes=10 * (detect_side // side) ** 2, exposure=32.0),
                           hand_cut=work / "large" / "pair")
     megapixels = captures * side * side / 1e6
-    cmd = ["survey", *references, "--captures", work / "incoming" / "*.tif", "-o", work / "out", "--json"]
+    cmd = ["survey", *references, "--captures", work / "incoming" / "*.tif", "-o", work / "out", "--json", "--settle", "0"]
     start = time.perf_counter()
     first = _measured("-q", *cmd, codes=(0, 3))  # 3: some captures failed (counted below)
     night_s = time.perf_counter() - start

@@ -229,7 +229,7 @@ def _survey_step(model, scheduler):
 
     night = survey(model.references, model.captures, model.output, config=model.config(), scheduler=scheduler,
                    workers=model.workers, parallel=model.parallel, worker_timeout=model.worker_timeout,
-                   report=model.report)
+                   report=model.report, settle=model.settle)
     result = {"output": str(model.output), "done": night.done, "skipped": night.skipped, "failed": night.failed,
               "summary": night.summary, "index": night.index,
               "failed_captures": {c.capture: c.reason for c in night.captures if c.status == "failed"}}

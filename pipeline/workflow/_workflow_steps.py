@@ -125,6 +125,7 @@ class SurveyStep(_MethodOptions):
     workers: Annotated[int, Field(ge=1)] | None = None
     worker_timeout: Annotated[float, Field(gt=0, allow_inf_nan=False)] = _D["worker_timeout"]
     report: bool = True
+    settle: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 60.0
 
     @field_validator("references", mode="before")
     @classmethod

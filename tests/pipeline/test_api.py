@@ -53,8 +53,9 @@ def test_api_and_command_run_the_same_night(tmp_path):
     references = write_reference(tmp_path / "reference", scene)
     write_capture(tmp_path / "incoming" / "cap.tif", scene, CaptureSpec((32, 32), (96, 96), seed=1, changes=1))
     captures, out = str(tmp_path / "incoming" / "*.tif"), tmp_path / "night"
-    assert main(["-q", "survey", *map(str, references), "--captures", captures, "-o", str(out), "--no-report"]) == 0
-    result = rsmb.survey(references, captures, out, report=False)
+    assert main(["-q", "survey", *map(str, references), "--captures", captures, "-o", str(out), "--no-report",
+                 "--settle", "0"]) == 0
+    result = rsmb.survey(references, captures, out, report=False, settle=0)
     assert isinstance(result, rsmb.SurveyResult) and (result.done, result.skipped, result.failed) == (0, 1, 0)
     assert result.captures[0].reason.startswith("done with the same key")
 

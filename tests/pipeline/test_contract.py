@@ -319,7 +319,7 @@ def test_survey_output_may_be_new_empty_or_a_survey(tmp_path, survey_inputs, cap
     reference, captures = survey_inputs
     empty = tmp_path / "empty"
     empty.mkdir()
-    survey = ["-q", "survey", str(reference), "--captures", captures, "--no-report", "-o"]
+    survey = ["-q", "survey", str(reference), "--captures", captures, "--no-report", "--settle", "0", "-o"]
     assert main([*survey, str(tmp_path / "new"), "--dry-run"]) == 0 and not (tmp_path / "new").exists()
     assert main([*survey, str(empty)]) == 0
     assert main([*survey, str(empty), "--dry-run"]) == 0  # a survey's folder: its ledger decides

@@ -206,3 +206,61 @@ def test_listings_and_times(path):
         started = dt.datetime.fromisoformat(row.started.replace("Z", "+00:00"))
         assert started.utcoffset() == dt.timedelta(0)
         assert row.finished >= row.started
+
+
+# ------------------------------------------------------- journal and files
+
+
+class _NoWal(sqlite3.Connection):
+    """A connection on a file system where WAL fails, as on NFS: setting it
+    raises what SQLite says there."""
+
+    def execute(self, sql, *args):
+        if sql.replace(" ", "").upper() == "PRAGMAJOURNAL_MODE=WAL":
+            raise sqlite3.OperationalError("locking protocol")
+        return super().execute(sql, *args)
+
+
+def test_without_wal_the_rollback_journal_serves(path, monkeypatch, caplog):
+    """WAL made unavailable (the pragma fails, as on NFS): the ledger says so
+    in the log, uses the rollback journal, and keeps its decisions across
+    reopening; a probe that reports WAL refused (another mode returned)
+    falls back the same way."""
+    from rsmb.pipeline.archive import _ledger
+
+    connect = sqlite3.connect
+    monkeypatch.setattr(_ledger.sqlite3, "connect", lambda *a, **k: connect(*a, factory=_NoWal, **k))
+    with caplog.at_level("WARNING", logger="rsmb"), Ledger(path) as ledger:
+        assert ledger.journal == "delete"
+        assert ledger._conn.execute("PRAGMA journal_mode").fetchone()[0] == "delete"
+        _done(ledger, "c.tif", _key())
+    assert "WAL unavailable on this file system (locking protocol); using the rollback journal" in caplog.text
+    assert not path.with_name(path.name + "-wal").exists()
+    monkeypatch.setattr(_ledger.sqlite3, "connect", connect)
+    monkeypatch.setattr(_ledger, "_wal_problem", lambda conn: "journal_mode=WAL gave delete")
+    with Ledger(path) as ledger:
+        assert ledger.journal == "delete" and ledger.decide("c.tif", _key()).action == "skip"
+        with pytest.raises(InputError, match="in use by another rsmb survey"):
+            Ledger(path)
+    with Ledger(path, readonly=True) as reader:
+        assert [r.status for r in reader.runs()] == ["done"]
+
+
+def test_files_are_remembered_and_a_version_1_ledger_gains_them(path):
+    from rsmb.pipeline.archive._ledger import FileStat
+
+    with Ledger(path) as ledger:
+        _done(ledger, "c.tif", _key())
+        ledger.remember_files([FileStat("c.tif", 10, 123, 7, "1" * 64, (4, 5))])
+        ledger.remember_files([FileStat("c.tif", 11, 124, 7, "2" * 64, (4, 5))])  # replaced
+        assert ledger.file_stats() == {"c.tif": FileStat("c.tif", 11, 124, 7, "2" * 64, (4, 5))}
+    conn = sqlite3.connect(path)
+    conn.execute("DROP TABLE files")
+    conn.execute("PRAGMA user_version=1")
+    conn.commit()
+    conn.close()
+    with Ledger(path, readonly=True) as reader:  # read as it is
+        assert reader.file_stats() == {} and len(reader.runs()) == 1
+    with Ledger(path) as ledger:
+        assert ledger.file_stats() == {} and ledger.decide("c.tif", _key()).action == "skip"
+    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION == 2

@@ -59,7 +59,7 @@ def _night(root, scene, *, bad=True, large=False):
 
 def _survey(references, night, out, *extra):
     return main(["-q", "survey", *map(str, references), "--captures", str(night / "**" / "*.tif"), "-o", str(out),
-                 "--no-report", *extra])
+                 "--no-report", "--settle", "0", *extra])
 
 
 class FirstNight(NamedTuple):
@@ -78,7 +78,7 @@ def first_night(tmp_path_factory):
     references, night = _night(root, _scene(), large=True)
     out = root / "out"
     args = ["-q", "survey", *map(str, references), "--captures", str(night / "**" / "*.tif"), "-o", str(out),
-            "--json"]
+            "--json", "--settle", "0"]
     start = time.perf_counter()
     code = main(args)
     return FirstNight(root, references, night, out, args, code, time.perf_counter() - start)
@@ -283,7 +283,8 @@ def test_the_next_capture_is_detected_while_one_writes_its_report(tmp_path, monk
 
     monkeypatch.setattr(survey_module, "detect", timed("detect", survey_module.detect))
     monkeypatch.setattr(_report, "write_report", timed("report", _report.write_report, pause=1.0))
-    result = survey_module.survey(references, str(night / "**" / "*.tif"), tmp_path / "out", parallel=1)
+    result = survey_module.survey(references, str(night / "**" / "*.tif"), tmp_path / "out", parallel=1,
+                                  settle=0)
     assert result.done == 3 and len(spans["detect"]) == 3 and len(spans["report"]) == 3
     detections = sorted(spans["detect"])
     assert all(a[1] <= b[0] for a, b in zip(detections, detections[1:]))  # one at a time
@@ -346,7 +347,7 @@ def test_a_night_killed_midway_finishes_as_if_never_interrupted(tmp_path):
     assert _survey(references, night, out) == 0
     os.replace(out, whole)
     cmd = [sys.executable, "-c", _KILLED_AFTER_FIRST_DONE, "-q", "survey", *map(str, references), "--captures",
-           str(night / "**" / "*.tif"), "-o", str(out), "--no-report", "--parallel", "1"]
+           str(night / "**" / "*.tif"), "-o", str(out), "--no-report", "--parallel", "1", "--settle", "0"]
     proc = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=300)
     assert proc.returncode == -signal.SIGKILL
     rows = sqlite3.connect(out / "ledger.sqlite").execute("SELECT status FROM runs").fetchall()

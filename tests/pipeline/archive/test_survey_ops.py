@@ -31,7 +31,7 @@ def _capture(path, scene, origin, seed):
 
 def _args(references, pattern, out, *extra):
     return ["-q", "survey", *map(str, references), "--captures", str(pattern), "-o", str(out), "--no-report",
-            "--tile-size", "160", *extra]
+            "--tile-size", "160", "--settle", "0", *extra]
 
 
 def _tree(root):
@@ -212,3 +212,88 @@ def test_a_lock_failure_that_is_not_contention_says_so(archive, tmp_path, capsys
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "ledger.sqlite.lock: cannot lock (No locks available" in err[0], err
     assert "in use" not in err[0]
+
+
+def test_a_night_with_nothing_new_reads_no_file(archive, tmp_path, monkeypatch):
+    """The second night hashes nothing (captures and reference known by
+    their stat); a capture rewritten with the same size and a new time is
+    read again, and only it."""
+    from rsmb.pipeline.archive import _survey as survey_module
+    from rsmb import tiles
+
+    _, scene, references = archive
+    night = tmp_path / "night"
+    for k, origin in enumerate(((60, 60), (200, 250))):
+        _capture(night / f"c{k}.tif", scene, origin, seed=100 + k)
+    out = tmp_path / "out"
+    args = _args(references, night / "*.tif", out, "--json")
+    assert main(args) == 0
+    read = []
+    probe = tiles.probe_image
+
+    def counted(path):
+        read.append(Path(path).name)
+        return probe(path)
+
+    monkeypatch.setattr(survey_module.tiles, "probe_image", counted)
+    assert main(args) == 0
+    assert read == [] and _summary(out)["skipped"] == 2
+    st = os.stat(night / "c1.tif")
+    os.utime(night / "c1.tif", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    assert main(args) == 0
+    assert read == ["c1.tif"]
+    assert _summary(out)["skipped"] == 2  # same content: same key
+
+
+def test_a_capture_still_being_written_waits(archive, tmp_path, capsys):
+    """Modified within --settle: skipped with its reason, not in the ledger,
+    no folder; --dry-run says so; once older it runs."""
+    _, scene, references = archive
+    night = tmp_path / "night"
+    _capture(night / "c0.tif", scene, (60, 60), seed=110)
+    _capture(night / "c1.tif", scene, (200, 250), seed=111)
+    old = time.time() - 3600
+    os.utime(night / "c0.tif", (old, old))
+    out = tmp_path / "out"
+    args = [*_args(references, night / "*.tif", out), "--settle", "600"]
+    assert main([*args, "--dry-run"]) == 0
+    text = capsys.readouterr().out
+    assert "would run" in text and "would wait" in text and "dry run: 1 to run, 0 to skip, 1 still being written; nothing written" in text
+    assert main([*args, "--json"]) == 0
+    by = {Path(c["capture"]).name: c for c in json.loads(capsys.readouterr().out)["captures"]}
+    assert by["c0.tif"]["status"] == "done"
+    assert by["c1.tif"]["status"] == "skipped" and by["c1.tif"]["reason"].startswith("still being written")
+    assert by["c1.tif"]["output"] is None and not (out / "captures" / "c1.tif").exists()
+    rows = sqlite3.connect(out / "ledger.sqlite").execute("SELECT capture FROM runs").fetchall()
+    assert [Path(c).name for c, in rows] == ["c0.tif"]
+    os.utime(night / "c1.tif", (old, old))
+    assert main([*args, "--json"]) == 0
+    by = {Path(c["capture"]).name: c["status"] for c in json.loads(capsys.readouterr().out)["captures"]}
+    assert by == {"c0.tif": "skipped", "c1.tif": "done"}
+
+
+def test_a_capture_modified_during_its_detection_is_not_recorded_done(archive, tmp_path, monkeypatch, capsys):
+    from rsmb.pipeline.archive import _survey as survey_module
+
+    _, scene, references = archive
+    night = tmp_path / "night"
+    _capture(night / "c0.tif", scene, (60, 60), seed=120)
+    detect = survey_module.detect
+
+    def touched(references, capture, *args, **kwargs):
+        result = detect(references, capture, *args, **kwargs)
+        with open(capture, "ab") as fh:  # more bytes arrive meanwhile
+            fh.write(b"\0" * 16)
+        return result
+
+    monkeypatch.setattr(survey_module, "detect", touched)
+    out = tmp_path / "out"
+    args = _args(references, night / "*.tif", out, "--json")
+    assert main(args) == 3
+    (capture,) = json.loads(capsys.readouterr().out)["captures"]
+    assert capture["status"] == "failed" and "modified during its detection" in capture["reason"]
+    assert not (out / "captures" / "c0.tif").exists()
+    monkeypatch.setattr(survey_module, "detect", detect)
+    assert main(args) == 0
+    (capture,) = json.loads(capsys.readouterr().out)["captures"]
+    assert capture["status"] == "done" and capture["reason"].startswith("content changed")

@@ -187,7 +187,7 @@ def test_a_survey_step_fails_with_its_night_and_resumes_by_its_ledger(tmp_path, 
     _survey_archive(tmp_path)
     path = _write(tmp_path, {"name": "nightly", "keep_going": True, "steps": [
         {"survey": {"references": ["reference/mosaic_0.tif", "reference/mosaic_1.tif"], "captures": "incoming/*.tif",
-                    "output": "night", "slow_axes": "none", "report": False}},
+                    "output": "night", "slow_axes": "none", "report": False, "settle": 0}},
         # inside the survey's output, so written by it; the archive wrote each capture's truth beside it
         {"evaluate": {"store": "night/captures/cap0.tif/changes.zarr", "truth": "incoming/cap0.truth"}},
     ]})
