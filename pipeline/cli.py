@@ -15,6 +15,7 @@ from rsmb.ops import RSMBError
 
 from ._options import Number, _check_scheduler, _floats, build_config, registration_options, runtime_options, \
     tile_option
+from .archive._ledger import SETTLE
 
 __all__ = ["main", "cli"]
 
@@ -221,7 +222,7 @@ def _check_captures(ctx, param, value):
 @click.option("--parallel", type=click.IntRange(min=1), default=None,
               help="Captures detected at once (their tasks share the scheduler's workers; each one's products "
                    "and report are written beside the next ones' detection) [default: cores + 1].")
-@click.option("--settle", type=Number(min=0), default=60.0, show_default=True,
+@click.option("--settle", type=Number(min=0), default=SETTLE, show_default=True,
               help="Seconds: a capture modified less long ago is still being written and waits for the next night "
                    "(skipped, reason 'still being written').")
 @click.option("--dry-run", is_flag=True, help="Say what would run and why (new, changed, retry, still being "

@@ -60,6 +60,10 @@ log = logging.getLogger("rsmb")
 
 #: File name of the ledger inside a survey's output directory.
 LEDGER_NAME = "ledger.sqlite"
+#: Default settle time of a survey, seconds: a capture modified less long ago
+#: is still being copied in and waits for the next night (the one default of
+#: ``rsmb survey --settle``, ``survey(settle=)`` and a workflow's ``settle``).
+SETTLE = 60.0
 #: Version of the tables below, stored as SQLite's ``user_version``.
 SCHEMA_VERSION = 2
 STATUSES = ("running", "done", "failed")

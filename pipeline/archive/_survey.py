@@ -44,7 +44,7 @@ from rsmb.ops._errors import one_line
 
 from ..detection._detect import detect
 from ..detection._plan import VERSION, DetectConfig
-from ._ledger import LEDGER_NAME, FileStat, Ledger, RunKey
+from ._ledger import LEDGER_NAME, SETTLE, FileStat, Ledger, RunKey
 from ..detection._outputs import write_products
 from .._scheduler import check_scheduler, open_runner
 
@@ -59,8 +59,6 @@ CAPTURES = "captures"
 #: so it pays the per-tile start once; the night's concurrency, not the tiles
 #: of one capture, keeps the cores busy.
 SURVEY_TILE = 1024
-#: Default ``settle``, seconds: a capture modified less long ago is still being copied in.
-SETTLE = 60.0
 _WILDCARDS = set("*?[")
 
 

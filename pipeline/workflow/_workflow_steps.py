@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from rsmb import ops
 
 from .._options import METHOD_DEFAULTS as _D
+from ..archive._ledger import SETTLE
 
 __all__ = ["DetectOptions", "DetectStep", "EvaluateStep", "ReportStep", "STEPS", "SurveyStep", "SynthStep",
            "Workflow"]
@@ -125,7 +126,7 @@ class SurveyStep(_MethodOptions):
     workers: Annotated[int, Field(ge=1)] | None = None
     worker_timeout: Annotated[float, Field(gt=0, allow_inf_nan=False)] = _D["worker_timeout"]
     report: bool = True
-    settle: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 60.0
+    settle: Annotated[float, Field(ge=0, allow_inf_nan=False)] = SETTLE
 
     @field_validator("references", mode="before")
     @classmethod
