@@ -14,7 +14,6 @@ from .changes._changes import (
     change_candidates,
     change_mask,
     change_score,
-    clipped_score,
     change_threshold,
     changes_to_reference,
     detect_changes,
@@ -27,10 +26,11 @@ from .changes._changes import (
 )
 from ._errors import InputError, ParameterError, RSMBError, RunError, SolverError
 from ._forward import CameraPath, RenderResult, render
-from ._intensity import IntensityScale, intensity_scale
+from ._intensity import IntensityScale, fill_zeros, intensity_scale
 from .depth._depthmap import DepthMapParams, DepthMapResult, depth_map, model_values
 from .depth._depthsolve import AlternateParams, depth_step
 from .depth._layers import LayerParams, LayerResult, depth_layers
+from .changes._bounds import ModelBounds, bounded_score, model_bounds
 from .changes._metrics import ConfusionCounts, confusion, trajectory_rmse
 from ._oracle import ExactRowSolution, huber_objective, optimal_chi, row_objective, solve_row_exact
 from ._posespace import PoseSpace
@@ -45,7 +45,7 @@ from .changes._threshold import kapur_threshold, kapur_threshold_histogram
 
 #: Version of the kernels' results: raised whenever a change to ops alters what
 #: a run computes, so that ``--resume`` never mixes tiles of two versions.
-KERNEL_VERSION = 6
+KERNEL_VERSION = 7
 
 __all__ = [
     "KERNEL_VERSION",
@@ -61,6 +61,7 @@ __all__ = [
     "RegistrationParams",
     "IntensityScale",
     "intensity_scale",
+    "fill_zeros",
     "LayerParams",
     "LayerResult",
     "depth_layers",
@@ -68,6 +69,9 @@ __all__ = [
     "DepthMapResult",
     "depth_map",
     "model_values",
+    "ModelBounds",
+    "model_bounds",
+    "bounded_score",
     "AlternateParams",
     "depth_step",
     "Registration",
@@ -86,7 +90,6 @@ __all__ = [
     "ChangeResult",
     "detect_changes",
     "change_score",
-    "clipped_score",
     "ScoreHistogram",
     "score_histogram",
     "change_threshold",

@@ -7,11 +7,8 @@ capture alike:
 
 1. **Clipped pixels.**  A pixel at a sensor's saturation value or at zero
    says only that the scene was at least (at most) that bright: it is left
-   out of the row solves; a capture's saturated pixel is change only where
-   the registered model stays clearly below the saturation value
-   (:func:`ops.clipped_score`); pixels at 0 (also the fill of image edges
-   without a nodata value) and a reference's clipped pixels carry no
-   evidence.  On the ingested luminance (integers divided
+   out of the row solves and is a bound of the change test
+   (:mod:`ops.changes._bounds`).  On the ingested luminance (integers divided
    by their dtype's maximum, floats as they are) an image's largest valid
    value is a saturation value when it is 1 (an integer input at its
    dtype's maximum, or float data on [0, 1]) or ``(2**k - 1) / 65535`` for k
@@ -20,6 +17,11 @@ capture alike:
    data in other units carry no clip level (nothing says where they
    saturate), and the brightest object of an image is not clipped unless it
    sits at such a value.
+   Zeros that are fill, not dark scene, are no-data (:func:`fill_zeros`):
+   a 0 region that reaches the image's edge or no-data, or holds a
+   :data:`FILL_SQUARE` px square of zeros (the black collar of an untagged
+   orthophoto), with the zeros joined to it within :data:`FILL_REACH` px;
+   scattered dark pixels inside the image stay clipped values (bounds).
 2. **One scale.**  From the valid, unclipped values of *both* images pooled:
    ``x' = x * SPAN / (hi - lo)`` with ``lo`` and ``hi`` their
    :data:`LOW_PERCENTILE` and :data:`HIGH_PERCENTILE`: residuals are
@@ -34,15 +36,21 @@ capture alike:
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
+from scipy import ndimage
 
 from ._errors import InputError
 
-__all__ = ["IntensityScale", "intensity_scale"]
+__all__ = ["FILL_REACH", "FILL_SQUARE", "IntensityScale", "fill_zeros", "intensity_scale"]
 
 LOW_PERCENTILE = 0.1
 HIGH_PERCENTILE = 99.9
 SPAN = 0.8
+#: Side (px) of a square of zeros that makes a 0 region fill (no-data).
+FILL_SQUARE = 24
+#: Zeros joined (through zeros, px) to fill within this distance are fill.
+FILL_REACH = 48
 
 
 @dataclass(frozen=True)
@@ -91,7 +99,8 @@ class IntensityScale:
         return {"rule": f"x' = x * {SPAN} / (hi - lo) from the pooled unclipped values of both images "
                         f"(percentiles {LOW_PERCENTILE} and {HIGH_PERCENTILE}); pixels at a saturation value "
                         "(1, or (2**k - 1) / 65535 for k in 10..15) or at 0 are clipped (left out of the row solves; "
-                        "a saturated capture pixel is change only where the model stays clearly below saturation)",
+                        "bounds of the change test); zeros that reach the image's edge or no-data, or hold a "
+                        f"{FILL_SQUARE} px square, and zeros joined to them within {FILL_REACH} px are fill (no-data)",
                 "lo": self.lo, "hi": self.hi, "reference_clip": list(self.reference_clip),
                 "capture_clip": list(self.capture_clip), "reference_clipped": self.reference_clipped,
                 "capture_clipped": self.capture_clipped}
@@ -160,3 +169,44 @@ def intensity_scale(reference, capture, *, names=("reference", "capture")):
     if not hi > lo:
         hi = lo + 1.0
     return IntensityScale(lo, hi, levels[0], levels[1], clipped[0], clipped[1])
+
+
+def fill_zeros(values):
+    """The zeros of an image window that are fill, not dark scene.
+
+    A 0 region is fill when it touches the image's edge or no-data, or holds
+    a :data:`FILL_SQUARE` x :data:`FILL_SQUARE` square of zeros; its zeros
+    joined to such pixels through zeros within :data:`FILL_REACH` px are
+    fill too.  Local: a window grown by ``FILL_SQUARE + FILL_REACH`` px on
+    every side decides its core as the whole image does.
+
+    Parameters
+    ----------
+    values : ndarray, shape (H, W), float32
+        NaN for no-data and beyond the image.
+
+    Returns
+    -------
+    ndarray of bool, shape (H, W)
+    """
+    values = np.asarray(values, np.float32)
+    zero = values == 0
+    if not zero.any():
+        return zero
+    ring = np.ones((3, 3), np.uint8)
+    seed = zero & (cv2.dilate((~np.isfinite(values)).astype(np.uint8), ring) > 0)
+    square = np.ones((FILL_SQUARE, FILL_SQUARE), np.uint8)
+    seed |= cv2.morphologyEx(zero.astype(np.uint8), cv2.MORPH_OPEN, square, borderType=cv2.BORDER_CONSTANT,
+                             borderValue=0) > 0
+    if not seed.any():
+        return seed
+    labels, _ = ndimage.label(zero, structure=np.ones((3, 3), bool))
+    out = seed.copy()
+    seeded = np.unique(labels[seed])
+    for k, box in enumerate(ndimage.find_objects(labels), 1):
+        if box is None or not np.isin(k, seeded):
+            continue
+        part = labels[box] == k
+        out[box] |= ndimage.binary_dilation(seed[box] & part, structure=np.ones((3, 3), bool),
+                                            iterations=FILL_REACH, mask=part)
+    return out

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rsmb.ops import InputError
+from rsmb.ops import fill_zeros
+from rsmb.ops._intensity import FILL_REACH, FILL_SQUARE
 
 from ._io import read_window
 
@@ -90,8 +92,13 @@ def ingest_core(read, tile, array, offset=(0, 0)):
     core less ``offset`` (an array padded by a margin holds source pixel (r, c)
     at (r + margin, c + margin)).  Returns :class:`WindowStats` of the core."""
     rows, cols = tile.core
-    data = read(slice(rows.start - offset[0], rows.stop - offset[0]),
-                 slice(cols.start - offset[1], cols.stop - offset[1]))
+    m = FILL_SQUARE + FILL_REACH  # the margin that decides which zeros of the core are fill
+    data = read(slice(rows.start - offset[0] - m, rows.stop - offset[0] + m),
+                slice(cols.start - offset[1] - m, cols.stop - offset[1] + m))
+    fill = fill_zeros(data)
+    data = data[m:-m, m:-m]
+    if fill.any():
+        data = np.where(fill[m:-m, m:-m], np.float32(np.nan), data)
     array[tile.core] = data
     return _stats(data)
 

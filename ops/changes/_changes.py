@@ -42,11 +42,9 @@ from skimage import measure
 
 from .._camera import pose_homographies
 from .._errors import ParameterError
-from .._oracle import optimal_chi
 from ._threshold import kapur_threshold_histogram
 
 __all__ = ["ChangeParams", "ScoreHistogram", "score_histogram", "change_threshold", "residual_median", "change_score",
-           "clipped_score",
            "RESIDUAL_BINS", "SCORE_BINS", "change_candidates",
            "label_components", "keep_components", "large_components", "fill_holes", "change_mask", "changes_to_reference",
            "ChangeResult", "detect_changes"]
@@ -253,36 +251,6 @@ def change_score(chi, registered, *, params=ChangeParams()):
     for kernel in (_SECOND_DIFFERENCE, _SECOND_DIFFERENCE.T):
         allowance += np.abs(cv2.filter2D(image, cv2.CV_32F, kernel, borderType=cv2.BORDER_REPLICATE))
     return np.maximum(score - np.float32(params.interpolation) * allowance, np.float32(0.0))
-
-
-def clipped_score(model, high, low, *, saturation, floor, lambda_chi):
-    """The change score of clipped capture pixels, from the one thing they say:
-    the scene was at least ``saturation`` (``high``) or at most ``floor``
-    (``low``) there.  The bound of the residual, ``saturation - model`` or
-    ``model - floor``, soft-thresholded as eq. 13's ``chi`` is
-    (:func:`optimal_chi`); NaN (no evidence) where the bound is not positive,
-    the model is unknown or the pixel is not clipped.
-
-    Parameters
-    ----------
-    model : ndarray, shape (H, W)
-        The registration's model at those pixels (:func:`model_values`).
-    high, low : ndarray of bool, shape (H, W)
-        Pixels at the capture's saturation value, at its floor.
-    saturation, floor : float
-        Those levels, in the units of ``model``.
-    lambda_chi : float
-
-    Returns
-    -------
-    ndarray of float32, shape (H, W)
-    """
-    model = np.asarray(model, np.float64)
-    bound = np.where(high, saturation - model, np.where(low, model - floor, np.nan))
-    known = np.isfinite(bound) & (bound > 0)
-    score = np.full(model.shape, np.nan, np.float32)
-    score[known] = optimal_chi(bound[known], lambda_chi=lambda_chi)
-    return score
 
 
 _SECOND_DIFFERENCE = np.array([[1.0, -2.0, 1.0]], np.float32)

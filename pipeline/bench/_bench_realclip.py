@@ -267,7 +267,7 @@ def bench_realclip(data, workdir, *, size=4096, workers=None):
     dist = _write_geotiff(directory / "capture.tif", pair.capture)
     store = directory / "o.zarr"
     t = time.perf_counter()
-    detect(ref, dist, store, workers=workers, overwrite=True)
+    summary = detect(ref, dist, store, workers=workers, overwrite=True)
     seconds = time.perf_counter() - t
     group = tiles.open_result_store(store)
     mask = group["change_mask"][:] == 1
@@ -281,7 +281,9 @@ def bench_realclip(data, workdir, *, size=4096, workers=None):
            "f_measure": c.f_measure, "precision": c.precision, "recall": c.recall,
            "recall_on_clipped": float(mask[pair.on_clipped].mean()) if pair.on_clipped.any() else float("nan"),
            "no_evidence_beyond_border": float(np.isnan(score[pair.covered]).mean()),
-           "no_evidence": float(np.isnan(score).mean()), "seconds": seconds}
+           "no_evidence": float(np.isnan(score).mean()), "seconds": seconds,
+           "registered_nan_beyond_border": float(np.isnan(group["registered"][:][pair.covered]).mean()),
+           "no_evidence_summary": summary.no_evidence}
     t = time.perf_counter()
     reference = pair.reference.astype(np.float32) / 255.0
     capture = pair.capture.astype(np.float32) / 255.0
@@ -296,7 +298,8 @@ def bench_realclip(data, workdir, *, size=4096, workers=None):
           f"objects, {pair.objects_on_clipped} on clipped areas): rsmb F {c.f_measure:.3f} (P {c.precision:.3f}, "
           f"R {c.recall:.3f}), recall on the objects on clipped areas {out['recall_on_clipped']:.3f}, no evidence "
           f"{100 * out['no_evidence_beyond_border']:.2f} % of the pixels beyond the border "
-          f"({100 * out['no_evidence']:.2f} % of all), {seconds:.1f} s; DIS dense flow (medium) with rsmb's change "
+          f"({100 * out['no_evidence']:.2f} % of all; registered NaN on {100 * out['registered_nan_beyond_border']:.2f} % "
+          f"beyond the border), {seconds:.1f} s; DIS dense flow (medium) with rsmb's change "
           f"rule F {d.f_measure:.3f} (P {d.precision:.3f}, R {d.recall:.3f}, recall on clipped areas "
           f"{out['dis']['recall_on_clipped']:.3f}), {out['dis_seconds']:.1f} s")
     shutil.rmtree(directory, ignore_errors=True)

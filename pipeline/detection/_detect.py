@@ -148,12 +148,13 @@ def _fuse_paths(runner, group, run, plan, timings):
 
 def _change_masks(runner, run, plan, fused, hist, timings):
     """Stage 5: one threshold, labels per block merged across seams, masks in
-    both grids.  Returns (threshold, changed pixels, components kept)."""
+    both grids.  Returns (threshold, changed pixels, components kept, pixels
+    without evidence)."""
     t0 = time.perf_counter()
     shape, blocks, changes = plan.shape, plan.blocks, plan.config.changes
     threshold = ops.change_threshold(hist, params=changes)
     labelled = runner.map("label", _tasks.label_task, [(run, b, shape, threshold, changes) for b in blocks])
-    summaries = {s.index: s for s, _ in labelled}
+    summaries = {s.index: s for s, _, _ in labelled}
     offsets, root, area, peak = tiles.merge_tile_labels(summaries, blocks.grid_shape)
     keep_global = ops.keep_components(area, peak, threshold, params=changes)
     kept = {}  # block index -> keep flag per local label, for blocks that keep any
@@ -172,8 +173,8 @@ def _change_masks(runner, run, plan, fused, hist, timings):
             args.append((run, b, window, pieces, stored_path[window[0]], plan.camera, plan.params.trajectory_axes, changes))
     masked = runner.map("masks", _tasks.mask_task, args)
     timings["changes_s"] = time.perf_counter() - t0
-    timings["changes_compute_s_sum"] = float(sum(c for _, c in labelled + masked))
-    return threshold, sum(n for n, _ in masked), int(keep_global.sum())
+    timings["changes_compute_s_sum"] = float(sum(c for _, c, _ in labelled) + sum(c for _, c in masked))
+    return threshold, sum(n for n, _ in masked), int(keep_global.sum()), sum(n for _, _, n in labelled)
 
 
 class _Counted:
@@ -382,7 +383,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                 grid = plan.grid
                 tile_stages = _register_tiles(runner, group, run, plan, resume, timings)
                 fused, hist, gains, agree, resolve = _fuse_paths(runner, group, run, plan, timings)
-                threshold, changed, components = _change_masks(runner, run, plan, fused, hist, timings)
+                threshold, changed, components, silent = _change_masks(runner, run, plan, fused, hist, timings)
                 tasks_per_tile = runner.tasks / len(grid)
                 timings["cpu_s"] = _cpu_stages(runner, tile_stages)
             timings["total_s"] = time.perf_counter() - t_start
@@ -398,6 +399,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                 reference_coverage=None if plan.pairing.coverage is None else plan.pairing.coverage.fraction,
                 failed_rows=int((group["tile_row_state"][:] == 3).sum()),
                 clipped_reference=run.intensity.reference_clipped, clipped_capture=run.intensity.capture_clipped,
+                no_evidence=silent / float(shape[0] * shape[1]),
                 parallax_components=len(_tasks.layer_components(group)),
                 parallax_pixels=int(sum(c["pixels"] for c in _tasks.layer_components(group))))
             _finish(group, store, plan, result, scheduler, overwrite, geotiff)

@@ -102,8 +102,12 @@ class DetectResult:
         interpolated from the rows around them.
     clipped_reference, clipped_capture : float
         Fraction of each image's valid pixels that are clipped (at zero or at
-        a saturation value; left out of the row solves; a saturated capture
-        pixel is one-sided evidence of change: :func:`ops.clipped_score`).
+        a saturation value; left out of the row solves; bounds of the change
+        test: :mod:`ops.changes._bounds`).
+    no_evidence : float
+        Fraction of the capture's pixels without evidence (NaN
+        ``change_score``: no-data, not covered by the reference, or clipped
+        where the model interval says nothing).
     parallax_components, parallax_pixels : int
         Candidate changes found to be depth layers (parallax, not change;
         ``parallax_mask``), and their pixels.
@@ -130,6 +134,7 @@ class DetectResult:
     failed_rows: int = 0
     clipped_reference: float = 0.0
     clipped_capture: float = 0.0
+    no_evidence: float = 0.0
     parallax_components: int = 0
     parallax_pixels: int = 0
 

@@ -206,17 +206,20 @@ def register_task(store, tile, camera, params, changes, prior=None):
     with clock.stage("depth"):
         layers = _depth_layers(result, reference, capture, camera, tile, params, changes)
     with clock.stage("score"):
-        score = ops.change_score(layers.chi, layers.registered, params=changes)
-        score = np.where(result.valid, score, np.nan)  # NaN: unknown
-        clipped = _clipped_score(store, raw, tile, result, reference, camera, params)
-        if clipped is not None:
-            score = np.where(np.isfinite(clipped), clipped, score)
+        chi, model, known = layers.chi, layers.registered, result.valid
+        bounded = _bounded_chi(store, raw, tile, result, camera, params)
+        if bounded is not None:  # the pixels the plane left unscored: their model interval decides
+            chi = np.where(result.valid, chi, bounded[0])
+            model = np.where(result.valid, model, bounded[1])
+            known = result.valid | np.isfinite(bounded[0])
+        score = ops.change_score(chi, model, params=changes)
+        score = np.where(known, score, np.nan)  # NaN: no evidence
         score = np.where(layers.parallax & np.isfinite(score), 0.0, score)  # parallax is never change, clipped or not
         residual = np.where(result.valid, distorted - layers.registered, 0.0)
         hist = ops.score_histogram(residual, score, result.valid)
     write_start = time.perf_counter()
     with clock.stage("write"):
-        registered = layers.registered if store.intensity is None else store.intensity.to_input(layers.registered)
+        registered = model if store.intensity is None else store.intensity.to_input(model)
         _array(store, "registered")[tile.core] = registered  # in the capture's units
         _array(store, "change_score")[tile.core] = score.astype(np.float32)
         _array(store, "parallax_mask")[tile.core] = layers.parallax.astype(np.uint8)
@@ -231,23 +234,38 @@ def register_task(store, tile, camera, params, changes, prior=None):
             "kernel_s": write_start - start - read, "pixels": h * w, "gain": result.gain, "stages": stages}
 
 
-def _clipped_score(store, raw, tile, result, reference, camera, params):
-    """The one-sided score of the tile's saturated capture pixels
-    (:func:`ops.clipped_score`: change only where the registration's model is
-    clearly below the saturation value), or None when the capture has no
-    saturation value or none of its pixels sits at it.  Pixels at the floor
-    (0) carry no evidence: 0 is also what fills an image's edges when no
-    nodata value says so.  ``raw``: the tile's capture as ingested."""
-    high = None if store.intensity is None else store.intensity.capture_clip[1]
-    if high is None:
+def _bounded_chi(store, raw, tile, result, camera, params):
+    """The change term of the tile's capture pixels that the registration left
+    without a model (its row solves leave clipped pixels out, so a pixel
+    whose search grid touches one, or a clipped capture pixel, has none):
+    each pixel's model interval from its row's active poses and blur, with
+    clipped pixels as bounds (:func:`ops.model_bounds`,
+    :func:`ops.bounded_score`).  Returns (chi, model) on the common scale,
+    NaN where there is no evidence, or None when nothing is clipped (no
+    intensity scale) or every capture pixel with data has its model.
+    ``raw``: the tile's capture as ingested."""
+    need = ~result.valid & np.isfinite(raw)
+    if store.intensity is None or not need.any():
         return None
-    at_high = raw >= np.float32(high)
-    if not at_high.any():
-        return None
-    model = ops.model_values(result, reference, at_high, camera=camera,
-                             reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin)
-    return ops.clipped_score(model, at_high, np.zeros(at_high.shape, bool), saturation=store.intensity.scaled(high),
-                             floor=0.0, lambda_chi=params.lambda_chi)
+    scale = store.intensity
+    ref_raw = store.ingested("reference", *tile.window)
+    ref_high, ref_low = _at_clip(ref_raw, scale.reference_clip)
+    reference = ref_raw * np.float32(scale.scaled(1.0))  # clipped pixels at their clip levels
+    bounds = ops.model_bounds(result, reference, ref_high, ref_low, need, camera=camera,
+                              reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin)
+    cap_high, cap_low = _at_clip(raw, scale.capture_clip)
+    chi = ops.bounded_score(raw * np.float32(scale.scaled(1.0)), bounds, cap_high, cap_low,
+                            lambda_chi=params.lambda_chi)
+    return np.where(need, chi, np.nan), bounds.model
+
+
+def _at_clip(values, levels):
+    """Pixels at or beyond an image's (floor, saturation) clip levels."""
+    low, high = levels
+    with np.errstate(invalid="ignore"):
+        at_high = values >= np.float32(high) if high is not None else np.zeros(values.shape, bool)
+        at_low = values <= np.float32(low) if low is not None else np.zeros(values.shape, bool)
+    return at_high, at_low
 
 
 def _depth_layers(result, reference, capture, camera, tile, params, changes):
@@ -299,17 +317,18 @@ def layer_components(group):
 def label_task(store, block, shape, threshold, change_params):
     """Stage 2: label the change candidates of one block's core, its score grown
     by the margin the local half-maximum test needs.  Returns (TileLabels,
-    compute seconds)."""
+    compute seconds, pixels of the core without evidence: NaN score)."""
     window = block.grown(change_params.margin, shape)
     score = _array(store, "change_score")[window]
     start = time.perf_counter()
     candidates = ops.change_candidates(score, threshold, params=change_params)
     core = _inside(block.core, window)
     labels, area, peak = ops.label_components(candidates[core], score[core])
+    silent = int(np.isnan(score[core]).sum())
     compute = time.perf_counter() - start
     if len(area) > 1:  # unwritten chunks read as 0: a block without candidates writes nothing
         _array(store, "work/labels")[block.core] = labels
-    return TileLabels.from_labels(block.index, labels, area, peak), compute
+    return TileLabels.from_labels(block.index, labels, area, peak), compute, silent
 
 
 def _inside(part, window):

@@ -51,8 +51,9 @@ _SUMMARY_LABELS = {
     "tasks_per_tile": "tasks per tile",
     "megapixels_per_s": "throughput, megapixels/s",
     "failed_rows": "failed tile rows (no fit, or unconverged)",
-    "clipped_reference": "clipped fraction of the reference (no evidence)",
-    "clipped_capture": "clipped fraction of the capture (one-sided evidence only)",
+    "clipped_reference": "clipped fraction of the reference (bounds)",
+    "clipped_capture": "clipped fraction of the capture (bounds)",
+    "no_evidence": "fraction of pixels without evidence (NaN score)",
 }
 
 

@@ -366,20 +366,6 @@ def test_interpolation_allowance_does_not_hide_a_misregistration():
     assert change_score(chi, registered).max() > 0.1
 
 
-def test_clipped_score_is_the_soft_thresholded_bound():
-    """A pixel at the saturation value says the scene was at least that
-    bright: its score is eq. 13's chi for the bound ``saturation - model``
-    where that is positive, no evidence (NaN) where the model reaches the
-    saturation value; at the floor the other way round."""
-    model = np.array([[0.5, 0.95, 1.2, np.nan], [0.5, 0.02, 0.0, 0.3]], np.float32)
-    high = np.array([[True, True, True, True], [False, False, False, False]])
-    low = np.array([[False, False, False, False], [True, True, True, False]])
-    score = ops.clipped_score(model, high, low, saturation=1.0, floor=0.0, lambda_chi=0.02)
-    np.testing.assert_allclose(score[0, :2], [0.5 - 0.01, 0.05 - 0.01], rtol=1e-6)
-    np.testing.assert_allclose(score[1, :2], [0.5 - 0.01, 0.02 - 0.01], rtol=1e-6)
-    assert np.isnan(score[0, 2:]).all() and np.isnan(score[1, 2:]).all()  # at/above saturation, unknown, not clipped
-
-
 def test_model_values_are_the_registered_image_anywhere():
     """The model at pixels the registration did not fit (e.g. clipped ones)
     is what the registered image holds where it did."""

@@ -1,6 +1,8 @@
 """One intensity scale for any bit depth and unit, and clipped pixels as
-no-data (ops._intensity): detect on the same pair stored in four ways, and on
-a capture brighter than its reference with clipped highlights."""
+bounds (ops._intensity, ops.changes._bounds): detect on the same pair stored
+in four ways, on a capture brighter than its reference with clipped
+highlights, on new objects over clipped roofs and shadows, and with black
+collars (fill, no-data)."""
 
 import cv2
 import numpy as np
@@ -40,13 +42,13 @@ def test_every_bit_depth_and_unit_gives_the_same_changes(tmp_path, pair):
             assert iou >= 0.98, (a, b, iou)
 
 
-def test_clipped_highlights_carry_one_sided_evidence(tmp_path):
+def test_a_bright_field_saturating_under_a_gain_is_not_change(tmp_path):
     """A capture 35 % brighter than its reference whose sensor saturates: a
     fifth of its pixels at 255 (bright fields; the new objects are dark on
-    them).  A clipped pixel says only that the scene was at least that bright:
-    no-data in the score and never change where the model reaches the
-    saturation value (the bright fields), change only where the model stays
-    clearly below it.  Their share is in the summary."""
+    them).  A clipped pixel says only that the scene was at least that
+    bright: where the model reaches the saturation value it is consistent
+    (never change), and the new dark objects on those fields are found.
+    Their share is in the summary."""
     pair_dir = tmp_path / "pair"
     bright, ref, dist = clipped_pair(pair_dir, SHAPE)
     saturation = np.percentile(bright.distorted, 80)
@@ -55,14 +57,62 @@ def test_clipped_highlights_carry_one_sided_evidence(tmp_path):
     assert 0.19 <= result.clipped_capture <= 0.21
     arrays, _ = read_store(tmp_path / "o.zarr")
     clipped = cv2.imread(str(dist), cv2.IMREAD_UNCHANGED) == 255
-    score, mask = arrays["change_score"], arrays["change_mask"] > 0
-    # most of the bright fields carry no evidence at all, and those are never change
-    assert np.isnan(score[clipped & ~bright.change_mask]).mean() > 0.5
-    assert not (mask & clipped & np.isnan(score) & ~bright.change_mask).any()
+    mask = arrays["change_mask"] > 0
+    field = clipped & ~bright.change_mask & bright.valid
+    assert mask[field].mean() < 0.01  # one small rim where the rows' gain falls short of the field
     scores = evaluate(tmp_path / "o.zarr", pair_dir)
     outside = ~bright.change_mask & bright.valid  # clipped pixels included
     false_pwc = 100.0 * mask[outside].mean()
     assert scores.changes.f_measure >= 0.93 and false_pwc <= 0.3, (scores.changes.f_measure, false_pwc)
+
+
+def _write_png(path, image):
+    cv2.imwrite(str(path), np.round(np.clip(image, 0, 1) * 255).astype(np.uint8))
+    return path
+
+
+def test_a_dark_object_on_a_saturated_roof_and_a_bright_one_in_a_black_shadow_are_found(tmp_path):
+    """A roof saturated in both images and a shadow at 0 in both; in the
+    capture a dark car on the roof and a bright object in the shadow.  The
+    reference's clipped pixels bound the scene (at least, at most that
+    bright): both objects lie far outside the bound and are change; the rest
+    of the roof and the shadow are not."""
+    margin, h = 40, SHAPE[0]
+    scene = (0.15 + 0.6 * ops.aerial_scene((h + 2 * margin,) * 2, seed=12)).astype(np.float32)
+    roof, shadow = (slice(80, 150), slice(70, 150)), (slice(200, 260), slice(190, 260))
+    scene[roof] = 1.3  # clipped at 255 in both images
+    # a deep shadow: mostly at 0 in both images, a third of its pixels just above (a real shadow is not a
+    # uniform block of zeros, which would be fill)
+    rng = np.random.default_rng(4)
+    scene[shadow] = -0.1 + 0.15 * rng.random(scene[shadow].shape, np.float32)
+    changed = scene.copy()
+    truth_source = np.zeros(scene.shape, np.float32)
+    car, lamp = (slice(105, 121), slice(95, 125)), (slice(220, 240), slice(215, 235))
+    changed[car], changed[lamp] = 0.1, 0.9
+    truth_source[car], truth_source[lamp] = 1.0, 2.0
+    path = ops.motion_path("translation", duration=h + 9.0, seed=2, scale=0.4)
+    kw = dict(shape=SHAPE, exposure=8.0, source_origin_yx=(margin, margin), interpolation="cubic")
+    capture = ops.render(changed, path, **kw).image
+    capture += np.random.default_rng(3).normal(0, 0.002, capture.shape).astype(np.float32)
+    objects = ops.render(truth_source, path, **kw).image
+    inner = (slice(margin, margin + h),) * 2
+    ref = _write_png(tmp_path / "reference.png", scene[inner])
+    dist = _write_png(tmp_path / "distorted.png", capture)
+    detect(ref, dist, tmp_path / "o.zarr", config=DetectConfig(tile=128))
+    arrays, _ = read_store(tmp_path / "o.zarr")
+    mask = arrays["change_mask"] > 0
+    dark, bright = np.abs(objects - 1.0) < 0.5, objects > 1.5
+    # their blurred rims mix in the roof's (the shadow's) true value, which only the bound says: at least 80 %
+    assert mask[dark].mean() >= 0.8 and mask[bright].mean() >= 0.8, (mask[dark].mean(), mask[bright].mean())
+    found = ops.confusion(mask, dark | bright)
+    assert found.precision >= 0.9, found.as_dict()
+    # no evidence only where both images are clipped the same way (the roof's and the shadow's insides), not
+    # in a wide ring around every clipped pixel
+    both = np.zeros(scene.shape, bool)
+    both[roof] = both[shadow] = True
+    around = cv2.dilate(both[inner].astype(np.uint8), np.ones((25, 25), np.uint8)) > 0
+    silent = np.isnan(arrays["change_score"])[20:-20, 20:-20]
+    assert silent[~around[20:-20, 20:-20]].mean() < 0.005
 
 
 def test_a_new_object_that_saturates_is_change(tmp_path):
@@ -116,15 +166,26 @@ def test_scale_and_clip_levels():
         ops.intensity_scale(stats(eight), stats(np.r_[np.zeros(50), np.ones(50)]))
 
 
-def test_a_zero_filled_border_is_not_change(tmp_path, pair):
-    """0 also fills the edges of images without a nodata value: pixels at the
-    floor carry no evidence, even where the model is far above 0."""
-    capture = np.clip(pair.distorted, 0, 1)
-    capture[:, :24] = 0.0  # a black band, as an orthorectified capture's edge
-    ref, dist = tmp_path / "reference.png", tmp_path / "distorted.png"
-    for path, image in ((ref, np.clip(pair.reference, 0, 1)), (dist, capture)):
-        cv2.imwrite(str(path), np.round(image * 255).astype(np.uint8))
+@pytest.mark.parametrize("which", ["capture", "reference"])
+def test_an_untagged_black_collar_is_no_data_never_change(tmp_path, pair, which):
+    """0 also fills the edges of images without a nodata value (the collar
+    of an orthophoto, tapering at a corner): that fill is no-data in either
+    image, never change, although the model (or the capture) is far above 0
+    there; the scene's own dark pixels elsewhere stay."""
+    images = {"reference": np.clip(pair.reference, 0, 1), "capture": np.clip(pair.distorted, 0, 1)}
+    yy, xx = np.mgrid[:SHAPE[0], :SHAPE[1]]
+    collar = (xx < 24) | (xx + yy < 70)  # a band and a corner triangle
+    images[which][collar] = 0.0
+    ref = _write_png(tmp_path / "reference.png", images["reference"])
+    dist = _write_png(tmp_path / "distorted.png", images["capture"])
     detect(ref, dist, tmp_path / "o.zarr", config=DetectConfig(tile=128))
     arrays, attrs = read_store(tmp_path / "o.zarr")
-    assert attrs["intensity"]["capture_clip"][0] == 0.0
-    assert np.isnan(arrays["change_score"][:, :24]).all() and not arrays["change_mask"][:, :24].any()
+    assert attrs["intensity"][f"{which}_clip"][0] is None  # no 0 left: the collar is no-data, not clipped
+    near = np.zeros(SHAPE, bool)
+    near[:, :40] = True  # the collar and what the motion carries from it
+    near |= xx + yy < 90
+    assert not arrays["change_mask"][near].any()
+    if which == "capture":
+        assert np.isnan(arrays["change_score"][collar]).all()
+    found = ops.confusion(arrays["change_mask"] > 0, pair.change_mask, valid=~near)
+    assert found.f_measure >= 0.9, found.as_dict()

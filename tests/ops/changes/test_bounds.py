@@ -1,0 +1,118 @@
+"""Clipped values are bounds (ops.changes._bounds, ops.fill_zeros): the model
+interval of a capture pixel and the change term against it."""
+
+import numpy as np
+
+from rsmb import ops
+from rsmb.ops.changes._bounds import TOUCH
+
+
+def _bounds(model, high=0.0, low=0.0):
+    model = np.asarray(model, np.float32)
+    return ops.ModelBounds(model, np.full(model.shape, high, np.float32), np.full(model.shape, low, np.float32))
+
+
+def test_an_unclipped_pixel_is_eq13s_chi():
+    g = np.array([[0.5, 0.5, 0.5]], np.float32)
+    chi = ops.bounded_score(g, _bounds([[0.5, 0.2, 0.9]]), np.zeros(g.shape, bool), np.zeros(g.shape, bool),
+                            lambda_chi=0.02)
+    np.testing.assert_allclose(chi, [[0.0, 0.29, -0.39]], atol=1e-6)
+
+
+def test_a_saturated_support_is_a_lower_bound():
+    """The reference saturated under a pixel: the scene was at least that
+    bright.  A capture far darker (a dark car on a white roof) is change; a
+    brighter one is not; a capture saturated too says nothing."""
+    g = np.array([[0.1, 0.95, 1.0]], np.float32)
+    at_high = np.array([[False, False, True]])
+    chi = ops.bounded_score(g, _bounds([[0.8, 0.8, 0.8]], high=0.6), at_high, np.zeros(g.shape, bool),
+                            lambda_chi=0.02)
+    np.testing.assert_allclose(chi[0, :2], [-(0.7 - 0.01), 0.0], atol=1e-6)
+    assert np.isnan(chi[0, 2])
+
+
+def test_a_support_at_zero_is_an_upper_bound():
+    """The reference at 0 under a pixel: the scene was at most that dark.  A
+    bright object in the shadow is change; a darker capture is not; a capture
+    at 0 says nothing."""
+    g = np.array([[0.9, 0.0, 0.0]], np.float32)
+    at_low = np.array([[False, False, True]])
+    chi = ops.bounded_score(g, _bounds([[0.05, 0.05, 0.05]], low=0.6), np.zeros(g.shape, bool), at_low,
+                            lambda_chi=0.02)
+    np.testing.assert_allclose(chi[0, :2], [0.85 - 0.01, 0.0], atol=1e-6)
+    assert np.isnan(chi[0, 2])
+
+
+def test_a_saturated_capture_is_change_only_where_the_model_stays_below():
+    """The capture saturated where the reference was not: a new bright roof
+    (the model far below saturation) is change; a bright field that
+    saturates under a gain (the model reaches saturation) is not; neither
+    is no-data."""
+    g = np.array([[1.0, 1.0]], np.float32)
+    at_high = np.ones(g.shape, bool)
+    chi = ops.bounded_score(g, _bounds([[0.4, 1.05]]), at_high, np.zeros(g.shape, bool), lambda_chi=0.02)
+    np.testing.assert_allclose(chi, [[0.6 - 0.01, 0.0]], atol=1e-6)
+
+
+def test_no_evidence_only_where_the_intervals_say_nothing():
+    g = np.array([[0.5, 0.5, 0.5]], np.float32)
+    none = np.zeros(g.shape, bool)
+    both = ops.ModelBounds(np.array([[0.5, 0.5, np.nan]], np.float32), np.array([[0.5, 0.3, 0]], np.float32),
+                           np.array([[0.5, 0.0, 0]], np.float32))
+    chi = ops.bounded_score(g, both, none, none, lambda_chi=0.02)
+    # whole support clipped and the capture inside: nothing known; partly clipped: consistent (0); model unknown
+    assert np.isnan(chi[0, 0]) and chi[0, 1] == 0.0 and np.isnan(chi[0, 2])
+
+
+def _scene(shape, seed):
+    return (0.1 + 0.6 * ops.aerial_scene(shape, seed=seed)).astype(np.float32)
+
+
+def test_the_bound_footprint_is_the_active_poses_times_the_blur():
+    """One saturated reference pixel: the row solves leave it out, so every
+    capture pixel whose search grid touches it loses its fit (a disk as wide
+    as the search window), but only the pixels whose row's weighted poses
+    (the motion and its blur) touch it have an open model."""
+    pair = ops.synthesize_pair((128, 128), motion="translation", changes=0, noise=0.002, seed=4, exposure=6.0,
+                               scale=0.3, scene=None)
+    reference = pair.reference.copy()
+    y, x = 64, 64
+    reference[y, x] = 1.0
+    high = np.zeros(reference.shape, bool)
+    high[y, x] = True
+    holed = np.where(high, np.nan, reference)
+    reg = ops.register(holed, pair.distorted, camera=pair.camera)
+    blind = ~reg.valid
+    bounds = ops.model_bounds(reg, reference, high, np.zeros(reference.shape, bool), blind, camera=pair.camera)
+    opened = np.nan_to_num(bounds.high_share) > TOUCH
+    assert blind.sum() >= 80 and opened.any()
+    assert opened.sum() <= 0.25 * blind.sum(), (opened.sum(), blind.sum())
+    # the open pixels are where the motion carries the saturated pixel
+    ys, xs = np.nonzero(opened)
+    shift = pair.trajectory[ys, :2].mean(axis=0)  # tx, ty of those rows
+    assert abs(ys.mean() - shift[1] - y) < 2.5 and abs(xs.mean() - shift[0] - x) < 2.5
+    # everywhere else in the blind disk the model is a point: evidence as any fitted pixel
+    rest = blind & ~opened & np.isfinite(bounds.model)
+    np.testing.assert_allclose(bounds.model[rest], pair.distorted[rest], atol=0.06)
+
+
+def test_zeros_that_are_fill():
+    """A black collar (0 reaching the image edge, or a large square of 0) is
+    fill, its thin tips too; scattered dark pixels inside are not."""
+    rng = np.random.default_rng(0)
+    image = rng.uniform(0.05, 0.9, (200, 200)).astype(np.float32)
+    yy, xx = np.mgrid[:200, :200]
+    collar = xx + yy < 60  # a corner triangle tapering to the edges
+    image[collar] = 0.0
+    image[100:140, 100:140] = 0.0  # a hole of no-data inside, untagged
+    specks = (rng.random((200, 200)) < 0.01) & (yy > 20) & (xx > 70) & (yy < 180) & (xx < 180) & ~(
+        (yy >= 90) & (yy < 150) & (xx >= 90) & (xx < 150))
+    image[specks] = 0.0
+    image[150:158, 30:38] = 0.0  # a dark 8 x 8 shadow: a bound, not fill
+    padded = np.pad(image, 4, constant_values=np.nan)  # beyond the image
+    fill = ops.fill_zeros(padded)[4:-4, 4:-4]
+    assert fill[collar].all() and fill[100:140, 100:140].all()
+    assert not fill[specks].any() and not fill[150:158, 30:38].any()
+    # a window grown by the rule's margin decides its core as the whole image does
+    m = 24 + 48
+    assert (ops.fill_zeros(padded[:4 + 100 + m, :4 + 100 + m])[4:104, 4:104] == fill[:100, :100]).all()
