@@ -17,6 +17,7 @@ from rsmb.ops import ParameterError
 FIGURES = ("before_after.jpg", "overlay.png", "trajectory.png", "gain.png", "agreement.png", "change_score.png")
 _SCORE_SIDE = 1024  # the score figure shows a value per screen pixel (or a square of them), at most this many a side
 _TRAJECTORY_WIDTH = 1000  # px
+_PANEL = 520  # px, the longer side of each picture of before_after.jpg: both side by side fit the page (1100 px)
 
 # overlay colours, RGB in [0, 1]
 _NAN_RGB = np.array([0.16, 0.18, 0.32])
@@ -257,17 +258,24 @@ def _write_png(rgb, path):
 
 
 def _write_before_after(group, before, after, factor, path):
-    """``before_after.jpg``: the stored previews side by side, each with the
-    changes of its own grid outlined (``change_mask_reference`` on the
-    reference, ``change_mask`` on the capture), block maxima at the preview's
-    size so that no change is lost."""
+    """``before_after.jpg``: the stored previews side by side, each at most
+    :data:`_PANEL` px a side (block mean of whole preview pixels, drawn pixel
+    for pixel: the page shows the figure at its size), each with the changes
+    of its own grid outlined (``change_mask_reference`` on the reference,
+    ``change_mask`` on the capture), block maxima at the panel's size so that
+    no change is lost."""
     from . import _report_plots as plots  # matplotlib: imported when a report is drawn
+    from ._previews import reduce_preview
 
+    k = max(1, math.ceil(max(before.shape[:2]) / _PANEL))
+    before, after = reduce_preview(before, k), reduce_preview(after, k)
     masks = []
     for image, name in ((before, "change_mask_reference"), (after, "change_mask")):
-        mask = block_reduce(_Changed(group[name]), factor, "max") if name in group else np.zeros(image.shape[:2])
+        mask = (block_reduce(_Changed(group[name]), factor * k, "max") if name in group
+                else np.zeros(image.shape[:2]))
         masks.append(mask[:image.shape[0], :image.shape[1]])
-    fig = plots.before_after_figure(before, after, masks[0], masks[1], factor=factor,
+    fig = plots.before_after_figure(before, after, masks[0], masks[1], factor=factor * k,
+                                    zoom=max(1, _PANEL // max(before.shape[:2])),
                                     titles=("Reference (before)", "Capture (after)"))
     return plots.save(fig, path)
 

@@ -58,29 +58,29 @@ def _axes_px(fig, left, bottom, width, height):
 # --------------------------------------------------------------------------- before and after
 
 
-def before_after_figure(before, after, before_mask, after_mask, *, titles, factor=1, width=1400):
+def before_after_figure(before, after, before_mask, after_mask, *, titles, factor=1, zoom=1):
     """The two inputs side by side with the changes outlined.
 
     Parameters
     ----------
     before, after : ndarray, uint8, shape (h, w, 4)
-        RGBA previews (alpha 0: no data, drawn on a checker-free gray).
+        RGBA previews (alpha 0: no data, shown gray).
     before_mask, after_mask : ndarray, shape (h, w)
         Nonzero where changed, on each preview's grid.
     titles : pair of str
     factor : int
         Input pixels per preview pixel (the axes are in input pixels).
-    width : int
-        Figure width, px.
+    zoom : int
+        Screen pixels per preview pixel on a side: the previews are drawn
+        pixel for pixel (``zoom`` 1) or enlarged without resampling.
     """
     h, w = before.shape[:2]
-    panel = (width - 60) // 2
-    panel_h = max(1, round(panel * h / w))
-    fig = _px_figure(width, panel_h + 70)
+    panel, panel_h = w * zoom, h * zoom
+    fig = _px_figure(2 * panel + 60, panel_h + 50)
     for k, (image, mask, title) in enumerate(((before, before_mask, titles[0]), (after, after_mask, titles[1]))):
-        ax = _axes_px(fig, 20 + k * (panel + 20), 20, panel, panel_h)
+        ax = _axes_px(fig, 20 + k * (panel + 20), 10, panel, panel_h)
         ax.set_facecolor("#808080")
-        ax.imshow(image, extent=(0, w * factor, h * factor, 0), interpolation="antialiased")
+        ax.imshow(image, extent=(0, w * factor, h * factor, 0), interpolation="nearest", resample=False)
         _outline(ax, np.asarray(mask) > 0, factor)
         ax.set_title(title, fontsize=12)
         ax.set_xticks([])

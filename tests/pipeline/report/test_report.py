@@ -658,3 +658,12 @@ def test_reduce_preview_averages_pixels_with_data():
     assert small[1, 0, 0] == 5 and small[0, 2, 0] == 45
     assert small[1, 2, 3] == 0 and (small[..., 3].sum() == 5 * 255)
     assert reduce_preview(rgba, 1) is rgba
+    rng = np.random.default_rng(2)
+    full = rng.integers(0, 256, (12, 18, 4), dtype=np.uint8)
+    full[..., 3] = 255
+    for k in (2, 3):  # whole blocks all with data (a shortcut) equal the general rule
+        general = full.copy()
+        general[-1, -1, 3] = 254  # not the shortcut, the same means
+        np.testing.assert_array_equal(reduce_preview(full, k)[..., :3], reduce_preview(general, k)[..., :3])
+        np.testing.assert_array_equal(reduce_preview(full, k)[..., :3],
+                                      np.floor(_block_mean(full[..., :3], k) + 0.5).astype(np.uint8))
