@@ -136,7 +136,8 @@ def evaluate(store, truth_dir, as_json):
 
 
 @cli.command()
-@click.option("--sections", default="oracle,speed,real,yaw,parallax,intensity,realclip,scale,gain,survey,history", show_default=True,
+@click.option("--sections", default="oracle,speed,real,yaw,parallax,intensity,realclip,scale,gain,survey,history,ledger",
+              show_default=True,
               help="Comma-separated sections to run.")
 @click.option("--data", type=click.Path(file_okay=False), default="../shared/data", show_default=True,
               help="Directory of real images (aerial/, rolling_shutter/); missing parts are skipped.")

@@ -501,10 +501,16 @@ class Ledger:
     # -- listings
 
     def runs(self, *, capture: str | None = None, night: str | None = None,
-             status: str | None = None) -> list[LedgerRow]:
+             status: str | None = None, outside: str | None = None) -> list[LedgerRow]:
         """Attempts in the order they started, optionally of one capture, one
-        night or one status."""
+        night or one status, or (``outside``, a folder) with an output folder
+        recorded that is not under it (the filter runs in SQLite)."""
         where, args = [], []
+        if outside is not None:
+            where.append("json_extract(outputs, '$.output') IS NOT NULL "
+                         "AND substr(json_extract(outputs, '$.output'), 1, ?) != ?")
+            prefix = outside.rstrip(os.sep) + os.sep
+            args.extend([len(prefix), prefix])
         if status is not None:
             where.append("status = ?")
             args.append(status)

@@ -136,15 +136,18 @@ def find_captures(pattern, out_dir):
     ``OUT_DIR/captures/``).  A file is outside ``out_dir`` by its resolved
     path (symlinks and ``..`` followed): a survey never takes its own
     products for captures, however the glob reaches them."""
-    prefix = _fixed_prefix(pattern).absolute()
-    out = Path(out_dir).resolve()
-    found = []
+    prefix = os.path.abspath(_fixed_prefix(pattern))
+    out = os.path.realpath(out_dir)
+    found, folders = [], {}  # folder -> its real path: one realpath per folder, not per file
     for name in sorted(glob.glob(os.fspath(pattern), recursive=True)):
-        path = Path(name).absolute()
-        real = path.resolve()
-        if not path.is_file() or real == out or out in real.parents:
+        path = os.path.abspath(name)
+        folder, base = os.path.split(path)
+        if folder not in folders:
+            folders[folder] = os.path.realpath(folder)
+        real = os.path.realpath(path) if os.path.islink(path) else os.path.join(folders[folder], base)
+        if real == out or real.startswith(out + os.sep) or not os.path.isfile(path):
             continue
-        found.append((path, Path(os.path.relpath(path, prefix))))
+        found.append((Path(path), Path(os.path.relpath(path, prefix))))
     return found
 
 
@@ -322,7 +325,7 @@ def _decide_all(ledger, found, references, config, settle):
     prints = _Fingerprints(ledger)
     reference_shas = [prints.get(r)[0] for r in references]
     history = ledger.history_by_capture() if ledger is not None else {}
-    now, fates = time.time(), []
+    now, fates, parameters = time.time(), [], {}  # parameters by image shape: resolved once per shape
     for capture, name in found:
         try:
             st = os.stat(capture)
@@ -332,7 +335,9 @@ def _decide_all(ledger, found, references, config, settle):
                                                      f"within --settle {settle:g} s): waits for the next night"))
                 continue
             sha, shape = prints.get(capture, st)
-            key = RunKey.build(sha, reference_shas, references, _parameters(config, shape), VERSION)
+            if shape not in parameters:
+                parameters[shape] = _parameters(config, shape)
+            key = RunKey.build(sha, reference_shas, references, parameters[shape], VERSION)
         except RSMBError as exc:  # unreadable: the ledger still hears of it
             fates.append((capture, name, "fail", (exc, RunKey.build("unreadable", reference_shas, references,
                                                                      _parameters(config), VERSION))))
@@ -517,7 +522,7 @@ def _migrate_layout(out, ledger):
     nested in a survey's own folder (``nights/`` ...) or whose new place is
     taken is marked failed (reason says so): it is redone tonight."""
     moved = 0
-    latest = {r.capture: r for r in ledger.runs(status="done")}  # the done attempt a skip is decided by
+    latest = {r.capture: r for r in ledger.runs(status="done", outside=str(out / CAPTURES))}
     old = [(r, Path(r.outputs["output"])) for r in latest.values()
            if r.outputs.get("output") and not Path(r.outputs["output"]).is_relative_to(out / CAPTURES)]
     # deepest first: a/b's folder leaves a/ before a/ moves

@@ -62,7 +62,7 @@ from ._baseline import dis_flow, ecc_homography, orb_homography
 __all__ = ["SECTIONS", "run_bench"]
 
 SECTIONS = ("oracle", "speed", "real", "yaw", "parallax", "intensity", "realclip", "scale", "gain", "survey",
-            "history")
+            "history", "ledger")
 PAPER_INPLANE = dict(axes=("tx", "ty", "rz"), half_width=(3.0, 3.0, 2.0), step=(1.0, 1.0, 0.5))
 
 
@@ -436,4 +436,8 @@ def run_bench(*, sections=SECTIONS, data=None, quick=False, workdir=None, sizes=
             from ._bench_history import bench_history
 
             results["history"] = bench_history(tmp)
+        if "ledger" in sections:
+            from ._bench_ledger import bench_ledger
+
+            results["ledger"] = bench_ledger(tmp, count=1000 if quick else 10_000)
     return results
