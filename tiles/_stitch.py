@@ -82,7 +82,20 @@ def merge_tile_labels(summaries, grid_shape):
     for index in sorted(summaries):
         offsets[index] = total
         total += len(summaries[index].area)
-    edges = []  # global label pairs that touch across a seam or a corner
+    root = _components(_seam_edges(summaries, offsets, grid_shape), total)
+    area = np.zeros(total, dtype=np.int64)
+    peak = np.zeros(total, dtype=np.float32)
+    for index, s in summaries.items():
+        ids = root[offsets[index]:offsets[index] + len(s.area)]
+        np.add.at(area, ids, s.area)
+        np.maximum.at(peak, ids, s.peak)
+    return offsets, root, area, peak
+
+
+def _seam_edges(summaries, offsets, grid_shape):
+    """Pairs of global labels that touch across a seam or a corner (arrays of
+    shape (n, 2), one per touching pair of tiles)."""
+    edges = []
 
     def link(pairs, oa, ob):
         edges.append(np.asarray(pairs, np.int64).reshape(-1, 2) + (oa, ob))
@@ -104,14 +117,7 @@ def merge_tile_labels(summaries, grid_shape):
                 d = summaries[(ty + 1, tx - 1)]
                 if s.bottom[0] > 0 and d.top[-1] > 0:
                     link([(s.bottom[0], d.top[-1])], offsets[(ty, tx)], offsets[(ty + 1, tx - 1)])
-    root = _components(edges, total)
-    area = np.zeros(total, dtype=np.int64)
-    peak = np.zeros(total, dtype=np.float32)
-    for index, s in summaries.items():
-        ids = root[offsets[index]:offsets[index] + len(s.area)]
-        np.add.at(area, ids, s.area)
-        np.maximum.at(peak, ids, s.peak)
-    return offsets, root, area, peak
+    return edges
 
 
 def _components(edges, total):

@@ -100,10 +100,9 @@ def test_overview_by_blocks_equals_the_whole(factor, phase):
     np.testing.assert_allclose(out, whole, rtol=1e-6)
 
 
-def _old_merge_tile_labels(summaries, grid_shape):
-    """merge_tile_labels as it was: a Python union-find (before scipy.sparse.csgraph)."""
-    from rsmb.tiles._stitch import _pairs_8
-
+def _old_components(edges, total):
+    """What the seam merge did before scipy.sparse.csgraph: a Python
+    union-find over the seam pairs, each component named by its smallest id."""
     def find(parent, i):
         root = i
         while parent[root] != root:
@@ -112,45 +111,19 @@ def _old_merge_tile_labels(summaries, grid_shape):
             parent[i], i = root, parent[i]
         return root
 
-    offsets, total = {}, 0
-    for index in sorted(summaries):
-        offsets[index] = total
-        total += len(summaries[index].area)
     parent = np.arange(total)
-
-    def union(pairs, oa, ob):
-        for la, lb in pairs:
-            ra, rb = find(parent, oa + int(la)), find(parent, ob + int(lb))
+    for pairs in edges:
+        for a, b in pairs:
+            ra, rb = find(parent, int(a)), find(parent, int(b))
             if ra != rb:
                 parent[max(ra, rb)] = min(ra, rb)
-
-    ny, nx = grid_shape
-    for (ty, tx), s in summaries.items():
-        if tx + 1 < nx:
-            union(_pairs_8(s.right, summaries[(ty, tx + 1)].left), offsets[(ty, tx)], offsets[(ty, tx + 1)])
-        if ty + 1 < ny:
-            union(_pairs_8(s.bottom, summaries[(ty + 1, tx)].top), offsets[(ty, tx)], offsets[(ty + 1, tx)])
-            if tx + 1 < nx:
-                d = summaries[(ty + 1, tx + 1)]
-                if s.bottom[-1] > 0 and d.top[0] > 0:
-                    union([(s.bottom[-1], d.top[0])], offsets[(ty, tx)], offsets[(ty + 1, tx + 1)])
-            if tx > 0:
-                d = summaries[(ty + 1, tx - 1)]
-                if s.bottom[0] > 0 and d.top[-1] > 0:
-                    union([(s.bottom[0], d.top[-1])], offsets[(ty, tx)], offsets[(ty + 1, tx - 1)])
-    root = np.array([find(parent, i) for i in range(total)], dtype=np.int64)
-    area = np.zeros(total, dtype=np.int64)
-    peak = np.zeros(total, dtype=np.float32)
-    for index, s in summaries.items():
-        ids = root[offsets[index]:offsets[index] + len(s.area)]
-        np.add.at(area, ids, s.area)
-        np.maximum.at(peak, ids, s.peak)
-    return offsets, root, area, peak
+    return np.array([find(parent, i) for i in range(total)], dtype=np.int64)
 
 
 @pytest.mark.parametrize("seed, tile", [(0, 64), (1, 50), (2, 37), (3, 512)])
 def test_seam_merge_equals_the_union_find_it_replaced(seed, tile):
     from rsmb.ops import label_components
+    from rsmb.tiles._stitch import _seam_edges
 
     rng = np.random.default_rng(seed)
     mask = ndimage.binary_dilation(rng.random((230, 301)) > 0.97, iterations=2 + seed % 2)
@@ -158,10 +131,9 @@ def test_seam_merge_equals_the_union_find_it_replaced(seed, tile):
     grid = TileGrid(mask.shape, tile, 0)
     summaries = {t.index: TileLabels.from_labels(t.index, *label_components(mask[t.core], score[t.core]))
                  for t in grid}
-    new, old = merge_tile_labels(summaries, grid.grid_shape), _old_merge_tile_labels(summaries, grid.grid_shape)
-    assert new[0] == old[0]
-    for a, b in zip(new[1:], old[1:]):
-        assert a.dtype == b.dtype
-        np.testing.assert_array_equal(a, b)
+    offsets, root, area, peak = merge_tile_labels(summaries, grid.grid_shape)
+    edges = _seam_edges(summaries, offsets, grid.grid_shape)
+    np.testing.assert_array_equal(root, _old_components(edges, len(root)))
+    assert root.dtype == np.int64
     if len(grid) > 1:
-        assert (new[1] != np.arange(len(new[1]))).any()  # some labels were merged across a seam
+        assert (root != np.arange(len(root))).any()  # some labels were merged across a seam
