@@ -183,6 +183,34 @@ class Runner:
         self.pool = pool
         self.progress = progress
         self.worker_timeout = float(worker_timeout)
+        # when the last worker was first seen gone: one clock for every map of
+        # the runner (a night's captures share it), not one per map
+        self._alone_since = None
+        self._alone_lock = threading.Lock()
+
+    def describe(self):
+        """The scheduler in use, for the log: ``threads (2 workers)``,
+        ``dask.distributed at tcp://127.0.0.1:8786 (4 workers)`` ..."""
+        if self.client is not None:
+            try:
+                info = self.client.scheduler_info()
+                return f"dask.distributed at {info.get('address', '?')} ({len(info.get('workers', {}))} workers)"
+            except (OSError, TimeoutError):
+                return "dask.distributed (scheduler out of reach)"
+        if self.scheduler == "synchronous":
+            return "synchronous (1 worker)"
+        count = getattr(self.pool, "_max_workers", None) or self.workers or os.cpu_count() or 1
+        return f"{self.scheduler} ({count} workers)"
+
+    def _alone_for(self, workers_left):
+        """Seconds since the last worker left (0 while some are there)."""
+        with self._alone_lock:
+            if workers_left:
+                self._alone_since = None
+                return 0.0
+            if self._alone_since is None:
+                self._alone_since = time.monotonic()
+            return time.monotonic() - self._alone_since
 
     def map(self, label, func, argument_lists):
         """``[func(*args) for args in argument_lists]`` on the scheduler; results
@@ -204,7 +232,7 @@ class Runner:
         n, owner = len(argument_lists), os.getpid()
         futures = [self.client.submit(_call, func, args, owner, pure=False, priority=n - i)
                    for i, args in enumerate(argument_lists)]
-        pending, alone_since = set(futures), None
+        pending = set(futures)
         while pending:
             try:
                 done = wait(pending, timeout=1.0, return_when="FIRST_COMPLETED").done
@@ -215,11 +243,7 @@ class Runner:
                 progress.step(len(done))
             if not pending:
                 break
-            if self._workers_left():
-                alone_since = None
-            elif alone_since is None:
-                alone_since = time.monotonic()
-            elif time.monotonic() - alone_since > self.worker_timeout:
+            if self._alone_for(self._workers_left()) > self.worker_timeout:
                 self.client.cancel(list(pending))
                 raise RunError(f"scheduler: no dask worker left for {self.worker_timeout:g} s "
                                f"({len(pending)} of {n} tasks unfinished); see --worker-timeout")

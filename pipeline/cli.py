@@ -4,6 +4,7 @@ Exit codes: 0 success, 2 bad input (one line naming the file or parameter and
 the problem), 1 anything else.
 """
 
+import contextlib
 import json
 import logging
 import sys
@@ -245,9 +246,12 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes
 
     config = build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold,
                           min_area, focal, tile_size, overlap, slow_axes=slow_axes, layers=not no_layers)
-    result = run(references, captures, out_dir, config=config, scheduler=scheduler, workers=workers,
-                 parallel=parallel, dry_run=dry_run, worker_timeout=worker_timeout, report=not no_report,
-                 settle=settle)
+    with _stopped_by_signals() as stop:
+        result = run(references, captures, out_dir, config=config, scheduler=scheduler, workers=workers,
+                     parallel=parallel, dry_run=dry_run, worker_timeout=worker_timeout, report=not no_report,
+                     settle=settle, stop=stop)
+    if not result.captures:
+        click.echo(f"rsmb: no capture matches {captures!r}: a night of 0 captures", err=True)
     if as_json:
         click.echo(json.dumps(result.as_dict(), indent=2))
     else:
@@ -262,8 +266,57 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes
         else:
             click.echo(f"{result.done} done, {result.skipped} skipped, {result.failed} failed"
                        + (f"; {result.index}" if result.index else ""))
+    if result.interrupted:
+        code = 128 + (stop.signum or 2)  # 130 on SIGINT, 143 on SIGTERM
+        click.echo(f"rsmb: survey stopped by {stop.why}: finished captures recorded, the others run next night",
+                   err=True)
+        _exit_now(code)
     if result.failed:
         ctx.exit(3)
+
+
+@contextlib.contextmanager
+def _stopped_by_signals():
+    """A night's stop (pipeline.archive._survey._Stop) that SIGINT and SIGTERM
+    set while the survey runs (the handlers before are put back after)."""
+    import signal
+    import threading
+
+    from .archive._survey import _Stop
+
+    stop = _Stop()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def handler(signum, frame):
+        if stop.event.is_set():  # a second signal: stop now
+            raise KeyboardInterrupt
+        stop.signum = signum
+        stop.event.set()
+        log.warning("survey: %s received: stopping (queued captures cancelled, running ones finish or are "
+                    "abandoned within seconds)", signal.Signals(signum).name)
+
+    saved = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for s, previous in saved.items():
+            signal.signal(s, previous)
+
+
+def _exit_now(code):
+    """Exit with ``code`` without waiting for the tasks an interrupted night
+    abandoned (their threads would hold the interpreter's exit)."""
+    import os
+    import threading
+
+    if threading.active_count() == 1:
+        raise click.exceptions.Exit(code)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    logging.shutdown()
+    os._exit(code)
 
 
 @cli.command("run")

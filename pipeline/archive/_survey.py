@@ -24,6 +24,7 @@ retried, a changed one redone.  One bad capture never stops the night: it is
 ``failed`` with a one-line reason and the others finish.
 """
 
+import contextlib
 import dataclasses
 import datetime as _dt
 import glob
@@ -33,7 +34,7 @@ import os
 import shutil
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -59,6 +60,8 @@ CAPTURES = "captures"
 #: so it pays the per-tile start once; the night's concurrency, not the tiles
 #: of one capture, keeps the cores busy.
 SURVEY_TILE = 1024
+#: Seconds a stopped night waits for its running captures before it abandons them.
+GRACE = 5.0
 _WILDCARDS = set("*?[")
 
 
@@ -111,6 +114,7 @@ class SurveyResult:
     night: str | None = None
     summary: str | None = None
     index: str | None = None
+    interrupted: bool = False
 
     def as_dict(self):
         """The DESIGN.md ``--json`` shape."""
@@ -158,6 +162,10 @@ def _check_invocation(references, captures, out_dir, scheduler):
     folder is a survey's when it has a ledger), a bad scheduler."""
     if not os.fspath(captures).strip():
         raise ParameterError(f"captures: expected a glob pattern of the night's captures, got {captures!r}")
+    prefix = _fixed_prefix(captures)
+    if not prefix.is_dir():  # a mistyped or unmounted folder is not an empty night
+        raise InputError(f"--captures: {prefix} is not a folder (the glob {os.fspath(captures)!r} searches it); "
+                         f"a night of no captures needs an existing, empty folder")
     if not references:
         raise InputError("REFERENCE: expected at least one georeferenced reference file")
     for path in references:
@@ -201,7 +209,7 @@ def _parameters(config, shape=None):
 
 
 def survey(references, captures, out_dir, *, config=None, scheduler="threads", workers=None, parallel=None,
-           dry_run=False, worker_timeout=60.0, report=True, settle=SETTLE):
+           dry_run=False, worker_timeout=60.0, report=True, settle=SETTLE, stop=None):
     """Run a night: every capture the glob ``captures`` finds, against the
     georeferenced reference set ``references`` (DESIGN.md, "Survey archives").
 
@@ -234,6 +242,12 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         written``; nothing recorded).  A capture whose size or modification
         time changes during its detection is not recorded done (``failed``,
         retried next night).
+    stop : threading.Event, optional
+        Set it to stop the night (the command sets it on SIGINT and SIGTERM):
+        queued captures are not run, running ones have a few seconds
+        (:data:`GRACE`) to finish and are abandoned after, every finished one
+        is recorded done, and the summary and index are written.  The result's
+        ``interrupted`` is then True.
 
     Returns
     -------
@@ -260,11 +274,12 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
     with Ledger(out / LEDGER_NAME) as ledger:  # its lock first: nothing in the folder is touched before
         shutil.rmtree(out / PARTIAL, ignore_errors=True)  # folders a killed night left half-built
         _migrate_layout(out, ledger)
+        halt = stop if isinstance(stop, _Stop) else _Stop(stop)
         results = _night(ledger, found, out, references, night, config, settle,
                          dict(scheduler=scheduler, workers=workers, parallel=parallel,
-                              worker_timeout=worker_timeout, report=report))
+                              worker_timeout=worker_timeout, report=report), halt)
         result = SurveyResult(results, *(sum(r.status == s for r in results) for s in ("done", "skipped", "failed")),
-                              night=night)
+                              night=night, interrupted=halt.event.is_set())
         summary = _write_night(out, result)
         # the runner is closed: no task of a failed capture can still be writing its scratch
         shutil.rmtree(out / PARTIAL, ignore_errors=True)
@@ -273,7 +288,7 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
 
         record = close_night(out, ledger, night, references)  # history, STAC catalog, map
         index = write_index(out, ledger.captures(), prefix=_fixed_prefix(captures).absolute(), record=record)
-    return SurveyResult(result.captures, result.done, result.skipped, result.failed, night, str(summary), str(index))
+    return dataclasses.replace(result, summary=str(summary), index=str(index))
 
 
 class _Fingerprints:
@@ -369,7 +384,7 @@ def _dry_run(found, out, references, config, settle):
     return SurveyResult(results, 0, sum(r.status == "would skip" for r in results), 0)
 
 
-def _night(ledger, found, out, references, night, config, settle, run):
+def _night(ledger, found, out, references, night, config, settle, run, stop):
     """Decide every capture, run those to run (:func:`_run_all`), record each
     in the ledger as it ends.  Returns CaptureResults in the order found."""
     results, todo = {}, []
@@ -391,39 +406,100 @@ def _night(ledger, found, out, references, night, config, settle, run):
             log.info("survey: %s: %s", name, decision.reason)
             todo.append((capture, name, ledger.start(str(capture), key, night=night), decision.reason, st))
     if todo:  # a night with nothing to run opens no scheduler (no cluster jobs, no connection)
-        results.update(_run_all(ledger, todo, out, references, config, run))
+        results.update(_run_all(ledger, todo, out, references, config, run, stop))
     return [results[capture] for capture, _ in found]
 
 
-def _run_all(ledger, todo, out, references, config, run):
+class _Stop:
+    """How a night is stopped (SIGINT/SIGTERM through the command): ``event``
+    is set by whoever stops it (``signum`` says why); the driver then cancels
+    the queued captures, waits up to ``grace`` seconds for the running ones
+    and abandons the rest (``abandoned`` set: they place nothing after)."""
+
+    def __init__(self, event=None, grace=GRACE):
+        self.event = event or threading.Event()
+        self.abandoned = threading.Event()
+        self.grace = grace
+        self.signum = None
+
+    @property
+    def why(self):
+        import signal
+
+        return signal.Signals(self.signum).name if self.signum else "a stop request"
+
+
+def _run_all(ledger, todo, out, references, config, run, stop):
     """Run the captures of ``todo`` (``parallel`` at once on one runner) and
-    record each in the ledger as it ends: capture -> CaptureResult."""
+    record each in the ledger as it ends: capture -> CaptureResult.  When
+    ``stop.event`` is set: queued captures are cancelled (``skipped``, their
+    attempt closed ``failed``: interrupted), running ones get ``stop.grace``
+    seconds to finish (done ones recorded as such), the others are abandoned
+    (``failed``: interrupted).  The runner of an interrupted night is left to
+    the process's exit (its tasks may still be running)."""
     results, total = {}, len(todo)
     cores = os.cpu_count() or 1
     parallel = run["parallel"] or cores + 1
     # a slot per capture being detected; the driver has threads to spare for
     # captures writing their products and report meanwhile
     slots = threading.Semaphore(parallel)
-    with open_runner(run["scheduler"], workers=run["workers"], shared=True, progress=False,
-                     worker_timeout=run["worker_timeout"]) as runner, \
-            ThreadPoolExecutor(parallel + cores + 1) as driver:
+    stack = contextlib.ExitStack()
+    runner = stack.enter_context(open_runner(run["scheduler"], workers=run["workers"], shared=True, progress=False,
+                                             worker_timeout=run["worker_timeout"]))
+    log.info("survey: %d capture(s) to run, %d at once, on %s", total, parallel, runner.describe())
+    driver = ThreadPoolExecutor(parallel + cores + 1)
+    interrupted = False
+    try:
         futures = {driver.submit(_run_capture, capture, name, out, references, config, runner, run["report"], slots,
-                                 st): (capture, name, run_id, why) for capture, name, run_id, why, st in todo}
-        for count, future in enumerate(as_completed(futures), 1):
-            capture, name, run_id, why = futures[future]
-            try:
-                result = future.result()
-            except ops.RunError:
-                raise  # the night cannot go on (every worker gone): not one capture's fault
-            except Exception as exc:  # noqa: BLE001 - one bad capture never stops the night
-                results[capture] = _fail(ledger, run_id, capture, exc, None)
-                log.error("survey [%d/%d] %s: failed: %s", count, total, name, results[capture].reason)
-                continue
-            result = dataclasses.replace(result, reason=why)
-            ledger.finish(run_id, "done", why, tiles.jsonable(result))
-            results[capture] = result
-            log.info("survey [%d/%d] %s: done in %.1f s, %d change(s)", count, total, name, result.seconds,
-                     result.changes)
+                                 st, stop): (capture, name, run_id, why) for capture, name, run_id, why, st in todo}
+        pending, count, deadline = set(futures), 0, None
+        while pending:
+            if stop.event.is_set() and deadline is None:
+                interrupted = True
+                deadline = time.monotonic() + stop.grace
+                cancelled = [f for f in pending if f.cancel()]
+                for future in cancelled:
+                    capture, name, run_id, why = futures[future]
+                    reason = f"not run: the night was stopped ({stop.why}); it runs next night"
+                    ledger.finish(run_id, "failed", f"interrupted before it ran ({stop.why})")
+                    results[capture] = CaptureResult(str(capture), "skipped", reason)
+                pending -= set(cancelled)
+                log.warning("survey: %s: %d queued capture(s) cancelled, %d running get %g s to finish", stop.why,
+                            len(cancelled), len(pending), stop.grace)
+            if deadline is not None and time.monotonic() >= deadline:
+                stop.abandoned.set()
+                for future in pending:
+                    capture, name, run_id, why = futures[future]
+                    results[capture] = _fail(ledger, run_id, capture, InputError(
+                        f"{capture}: interrupted while running ({stop.why}): it runs again next night"), None)
+                log.warning("survey: %d running capture(s) abandoned", len(pending))
+                break
+            done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
+            for future in done:
+                count += 1
+                capture, name, run_id, why = futures[future]
+                try:
+                    result = future.result()
+                except ops.RunError:
+                    raise  # the night cannot go on (every worker gone): not one capture's fault
+                except Exception as exc:  # noqa: BLE001 - one bad capture never stops the night
+                    results[capture] = _fail(ledger, run_id, capture, exc, None)
+                    log.error("survey [%d/%d] %s: failed: %s", count, total, name, results[capture].reason)
+                    continue
+                result = dataclasses.replace(result, reason=why)
+                ledger.finish(run_id, "done", why, tiles.jsonable(result))
+                results[capture] = result
+                log.info("survey [%d/%d] %s: done in %.1f s, %d change(s)", count, total, name, result.seconds,
+                         result.changes)
+    except BaseException:
+        driver.shutdown(wait=False, cancel_futures=True)
+        stop.abandoned.set()
+        raise
+    if interrupted:
+        driver.shutdown(wait=False, cancel_futures=True)  # the runner and its tasks end with the process
+    else:
+        driver.shutdown(wait=True)
+        stack.close()
     return results
 
 
@@ -434,7 +510,7 @@ def _fail(ledger, run_id, capture, exc, seconds):
     return CaptureResult(str(capture), "failed", reason, seconds=seconds or 0.0)
 
 
-def _run_capture(capture, name, out, references, config, runner, report, slots, st):
+def _run_capture(capture, name, out, references, config, runner, report, slots, st, stop):
     """One capture, built aside and renamed into place: its store, products,
     thumbnail and report.  Runs in a driver thread; its tasks on ``runner``;
     its detection holds one of ``slots`` (a semaphore), its products and
@@ -452,6 +528,8 @@ def _run_capture(capture, name, out, references, config, runner, report, slots, 
         folder = out / CAPTURES / name
         features, read = _build(capture, aside, folder, references, config, runner, report, slots)
         _check_unchanged(capture, st)
+        if stop.abandoned.is_set():  # the night gave up on it: it places nothing now
+            raise InputError(f"{capture}: interrupted while running ({stop.why})")
         folder.parent.mkdir(parents=True, exist_ok=True)
         tiles.swap_into_place(aside, folder, overwrite=True)  # a capture redone replaces its folder
     finally:

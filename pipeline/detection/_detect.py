@@ -374,7 +374,8 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                 runner = _Counted(shared)
                 shape, grid = plan.shape, plan.grid
                 log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", plan.distorted.path, shape[0],
-                         shape[1], len(grid), grid.tile, grid.halo, scheduler)
+                         shape[1], len(grid), grid.tile, grid.halo,
+                         getattr(shared, "describe", lambda: scheduler)())
                 run = _ingest(runner, group, run, plan, timings)
                 slow_stage(runner, group, run, plan, timings)
                 plan = plan.for_rows(group["work/slow"][:])  # the halo the rows need, the slow part known

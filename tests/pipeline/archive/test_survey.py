@@ -394,6 +394,15 @@ def test_bad_invocations_and_an_empty_night(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and named in err[0], (args, err)
     assert not (tmp_path / "o").exists()
+    # a captures folder that does not exist is bad input; an existing empty one is a night of 0 captures
+    assert main(["-q", "survey", str(references[0]), "--captures", str(tmp_path / "none" / "*.tif"), "-o",
+                 str(tmp_path / "empty"), "--json"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--captures" in err[0] and str(tmp_path / "none") in err[0], err
+    assert not (tmp_path / "empty").exists()
+    (tmp_path / "none").mkdir()
     assert main(["-q", "survey", str(references[0]), "--captures", str(tmp_path / "none" / "*.tif"), "-o",
                  str(tmp_path / "empty"), "--json"]) == 0
-    assert json.loads(capsys.readouterr().out) == {"captures": [], "done": 0, "skipped": 0, "failed": 0}
+    captured = capsys.readouterr()
+    assert json.loads(captured.out) == {"captures": [], "done": 0, "skipped": 0, "failed": 0}
+    assert "a night of 0 captures" in captured.err

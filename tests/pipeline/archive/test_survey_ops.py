@@ -297,3 +297,76 @@ def test_a_capture_modified_during_its_detection_is_not_recorded_done(archive, t
     assert main(args) == 0
     (capture,) = json.loads(capsys.readouterr().out)["captures"]
     assert capture["status"] == "done" and capture["reason"].startswith("content changed")
+
+
+def _ledger_rows(out):
+    try:
+        with sqlite3.connect(out / "ledger.sqlite", timeout=10) as db:
+            return db.execute("SELECT capture, status, reason FROM runs ORDER BY id").fetchall()
+    except sqlite3.Error:
+        return []
+
+
+def test_ctrl_c_stops_within_seconds_and_nothing_finished_is_redone(archive, tmp_path):
+    """SIGINT to a night of many small captures once one is done: the night
+    stops within seconds with exit 130, writes its summary and index, records
+    every finished capture done (its folder in place) and leaves no attempt
+    running; the next night skips them and runs the rest."""
+    _, scene, references = archive
+    night = tmp_path / "night"
+    rng = np.random.default_rng(5)
+    for k in range(12):
+        origin = tuple(int(v) for v in rng.integers(40, 300, size=2))
+        _capture(night / f"c{k:02d}.tif", scene, origin, seed=200 + k)
+    out = tmp_path / "out"
+    args = _args(references, night / "*.tif", out, "--parallel", "1", "--json")
+    proc = subprocess.Popen([sys.executable, "-m", "rsmb.pipeline.cli", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    _wait_for(lambda: any(s == "done" for _, s, _ in _ledger_rows(out)) or proc.poll() is not None, 300)
+    start = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    seconds = time.monotonic() - start
+    assert proc.returncode == 130, stderr.decode()
+    assert seconds < 15, seconds
+    assert "stopped by SIGINT" in stderr.decode()
+    rows = _ledger_rows(out)
+    assert "running" not in {s for _, s, _ in rows}
+    done = {Path(c).name for c, s, _ in rows if s == "done"}
+    assert 1 <= len(done) < 12
+    summary = json.loads(stdout)
+    assert summary == _summary(out) and summary["done"] == len(done) and (out / "index.html").is_file()
+    for name in done:
+        assert (out / "captures" / name / "changes.gpkg").is_file(), name
+    assert main(_args(references, night / "*.tif", out, "--json")) == 0
+    by = {Path(c["capture"]).name: c["status"] for c in _summary(out)["captures"]}
+    assert {n for n, s in by.items() if s == "skipped"} == done
+    assert {n for n, s in by.items() if s == "done"} == {f"c{k:02d}.tif" for k in range(12)} - done
+
+
+def test_every_worker_lost_ends_the_night_within_the_timeout(archive, tmp_path, dask_cluster):
+    """The only worker of a tcp:// cluster killed mid-night: exit 1 with one
+    line within --worker-timeout plus a few seconds, once for the night (not
+    once per capture); the log names the cluster it ran on."""
+    scheduler_file, worker = dask_cluster
+    _, scene, references = archive
+    night = tmp_path / "night"
+    for k in range(6):
+        _capture(night / f"c{k}.tif", scene, (40 + 50 * k, 60), seed=300 + k)
+    out = tmp_path / "out"
+    address = json.loads(Path(scheduler_file).read_text())["address"]
+    args = [a for a in _args(references, night / "*.tif", out) if a != "-q"]
+    proc = subprocess.Popen([sys.executable, "-m", "rsmb.pipeline.cli", *args, "--scheduler", address,
+                             "--worker-timeout", "5", "--parallel", "2"], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    _wait_for(lambda: (out / ".partial" / "building").exists() or proc.poll() is not None, 120)
+    worker.kill()
+    start = time.monotonic()
+    _, stderr = proc.communicate(timeout=120)
+    seconds = time.monotonic() - start
+    err = stderr.decode()
+    assert proc.returncode == 1, err
+    assert seconds < 5 + 10, seconds
+    assert f"on dask.distributed at {address}" in err
+    last = [line for line in err.strip().splitlines() if line.startswith("rsmb:")]
+    assert len(last) == 1 and "no dask worker left for 5 s" in last[0], err
