@@ -36,7 +36,8 @@ def test_api_names(tmp_path):
     scores = rsmb.evaluate(tmp_path / "o.zarr", tmp_path / "pair")
     assert isinstance(scores, rsmb.Evaluation) and 0 <= scores.changes.f_measure <= 1
     assert rsmb.report(tmp_path / "o.zarr").name == "index.html"
-    # ... and a survey of a night with no captures finishes with nothing to do
+    # ... and a survey of a night with no captures (an existing, empty folder) finishes with nothing to do
+    (tmp_path / "no-flight").mkdir()
     night = rsmb.survey([paths.reference], str(tmp_path / "no-flight" / "*.tif"), tmp_path / "survey")
     assert isinstance(night, rsmb.SurveyResult)
     assert (night.captures, night.done, night.skipped, night.failed) == ([], 0, 0, 0)
