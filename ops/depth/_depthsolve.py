@@ -20,7 +20,8 @@ change threshold (change candidates carry no evidence of the motion).  Later
 rounds' depth maps may give a depth only to pixels the first one gave one or
 left below the threshold: fitting the rows to the depths taken would otherwise
 make a new object that took a depth by chance more consistent with it, round
-after round, until it is explained away.  Only tiles whose depth map took a
+after round, until it is explained away.  Symmetrically, what the first round
+found to be parallax stays parallax in later rounds.  Only tiles whose depth map took a
 depth on at least :attr:`AlternateParams.min_share` of their pixels pay for
 it, and only rows holding such pixels are solved again.
 """
@@ -103,6 +104,7 @@ def depth_step(registration, reference, distorted, *, camera, threshold, space, 
     taken = dense.inverse_depth != 1.0
     # later rounds: no new depth for what the first round left a change candidate
     allowed = taken | (np.abs(g - layers.registered) <= threshold)
+    first = layers.parallax
     if params.rounds <= 0 or taken.sum() < params.min_share * max(int(registration.valid.sum()), 1):
         return layers, dense, info
     objective = _objective(registration, layers.registered, g, lambda_w, lambda_chi)
@@ -115,6 +117,7 @@ def depth_step(registration, reference, distorted, *, camera, threshold, space, 
                               rows, camera, space, lambda_w, lambda_chi, reference_origin_yx, distorted_origin_yx,
                               params)
         new_layers, new_dense = _one_step(moved, reference, g, windows, allowed)
+        new_layers.parallax |= first  # nor may they make a change of what the first round explained
         new = _objective(moved, new_layers.registered, g, lambda_w, lambda_chi, objective[1])
         old = _objective(registration, layers.registered, g, lambda_w, lambda_chi, new[1])
         info["objectives"].append(new[0])
@@ -132,6 +135,8 @@ def _one_step(registration, reference, g, windows, allowed=None):
     (on ``allowed`` pixels)."""
     layers = depth_layers(registration, reference, g, **windows)
     layered = dataclasses.replace(registration, registered=layers.registered, chi=layers.chi)
+    # what a layer's depth left unexplained on or against it is judged at that depth only
+    allowed = ~layers.kept if allowed is None else allowed & ~layers.kept
     dense = depth_map(layered, reference, g, allowed=allowed, **windows)
     layers.registered, layers.chi = dense.registered, dense.chi
     layers.parallax = layers.parallax | dense.explained

@@ -18,6 +18,13 @@ explains most of its pixels):
 
 New objects are explained at no depth (the reference has nothing like them
 there); the depth ``rho = 1`` is the ground itself and is not tried.
+
+The decision is per component, its consequence per pixel: of a layer's
+component, only the pixels explained at its depth, those on its edge (between
+the values the layer renders around them: blur and the capture's optics),
+the disoccluded ones and remnants smaller than a change join ``parallax``.
+The rest, a new object on the roof or touching the block, stays a change
+candidate (``kept``), judged at the layer's depth only.
 """
 
 from dataclasses import dataclass, field
@@ -65,6 +72,10 @@ class LayerResult:
     registered, chi : ndarray, shape (H, W), float32
         The registration's, with the explained pixels of those components
         re-rendered at their depth (and ``chi`` 0 on their disoccluded pixels).
+    kept : ndarray of bool, shape (H, W)
+        Pixels of those components that their depth does not explain and that
+        do not see ground the layer hid: change candidates still (a new object
+        on or against the layer), to be judged at that depth only.
     components : list of dict
         Per layer: ``row``, ``col`` (centroid, window pixels), ``pixels``,
         ``depth``, ``explained`` (fraction) and ``rmse`` (intensity units, over
@@ -74,7 +85,12 @@ class LayerResult:
     parallax: np.ndarray
     registered: np.ndarray
     chi: np.ndarray
+    kept: np.ndarray = None
     components: list = field(default_factory=list)
+
+    def __post_init__(self):
+        if self.kept is None:
+            self.kept = np.zeros(self.parallax.shape, bool)
 
 
 def depth_layers(registration, reference, distorted, *, camera, threshold, reference_origin_yx=(0, 0),
@@ -116,7 +132,7 @@ def depth_layers(registration, reference, distorted, *, camera, threshold, refer
         component = (labels[box] == index) & candidates[box]
         if component.sum() < params.min_area:
             continue
-        found = _test_component(frame, box, component, params.depths, threshold)
+        found = _test_component(frame, box, component, params.depths, threshold, params.min_area)
         if found is not None:
             _mark(out, frame, box, component, found, lambda_chi)
     return out
@@ -162,7 +178,7 @@ class _Frame:
         return out
 
 
-def _test_component(frame, box, component, depths, threshold):
+def _test_component(frame, box, component, depths, threshold, min_area):
     """(depth, rendered window, explained, disoccluded) of the depth that
     makes the component parallax, or None."""
     g = frame.dist[box]
@@ -185,34 +201,91 @@ def _test_component(frame, box, component, depths, threshold):
     count, depth, rendered, explained = max((explain(d) for d in near), key=lambda t: t[0])
     if count < MIN_EXPLAINED * pixels:
         return None
-    disoccluded = _disoccluded(frame, box, component & ~explained, explained, depth)
+    # the layer's footprint from the pixels its depth alone explains: flat ground
+    # beside it is explained at many depths and would widen it
+    others = [t[3] for d, t in tried.items() if abs(d - depth) > step / 4 + 1e-9]
+    decisive = explained & ~np.any(others, axis=0) if others else explained
+    edge = _edge(component & ~explained, explained, rendered, g, threshold)
+    # the layer as the capture sees it: what its depth explains in the window
+    # (a uniform roof's inside is no candidate) connected to its decisive pixels
+    seen = np.abs(g - rendered) < threshold
+    lab, _ = ndimage.label(seen, structure=np.ones((3, 3)))
+    seen = np.isin(lab, np.unique(lab[decisive & seen])) & (lab > 0)
+    disoccluded = _disoccluded(frame, box, component & ~explained & ~edge, seen | explained, decisive, depth) | edge
     if count + disoccluded.sum() < MIN_COVERED * pixels:
         return None
-    return depth, rendered, explained, disoccluded
+    # what is left of the layer in pieces smaller than a change is its remnant
+    rest = component & ~explained & ~disoccluded
+    labels, count = ndimage.label(rest, structure=np.ones((3, 3)))
+    small = np.bincount(labels.ravel(), minlength=count + 1) < min_area
+    small[0] = False
+    return depth, rendered, explained, disoccluded | small[labels]
 
 
-def _disoccluded(frame, box, pixels, explained, depth):
+def _edge(pixels, explained, rendered, g, threshold):
+    """Which of ``pixels`` touch explained ones and lie between the values the
+    layer renders around them (3 x 3): its edge, blurred and sampled
+    differently by the capture's optics."""
+    finite = np.isfinite(rendered)
+    lo = ndimage.minimum_filter(np.where(finite, rendered, np.inf), 3)
+    hi = ndimage.maximum_filter(np.where(finite, rendered, -np.inf), 3)
+    near = ndimage.binary_dilation(explained, np.ones((3, 3), bool))
+    return pixels & near & (g >= lo - threshold) & (g <= hi + threshold)
+
+
+def _disoccluded(frame, box, pixels, explained, decisive, depth):
     """Which of ``pixels`` (window box) see, on the ground, a point that the
-    layer at ``depth`` (its footprint: where the ``explained`` pixels come
-    from) covered in the reference."""
-    if not pixels.any():
-        return pixels
-    footprint = _to_reference(frame, box, explained, depth)
-    shape = frame.ref.shape
-    mask = np.zeros(shape, np.uint8)
-    inside = (footprint[:, 0] >= 0) & (footprint[:, 1] >= 0) & (footprint[:, 0] < shape[0] - 1) & \
-             (footprint[:, 1] < shape[1] - 1)
-    r, c = np.round(footprint[inside]).astype(int).T
-    mask[r, c] = 1
-    mask = cv2.dilate(mask, np.ones((5, 5), np.uint8)) > 0
-    ground = _to_reference(frame, box, pixels, 1.0)
-    r, c = np.round(ground).astype(int).T
-    ok = (r >= 0) & (c >= 0) & (r < shape[0]) & (c < shape[1])
-    hit = np.zeros(len(r), bool)
-    hit[ok] = mask[r[ok], c[ok]]
+    layer at ``depth`` covered in the reference, and do not see the layer
+    itself (carried at ``depth``, they fall off it): the ground the layer hid.
+    The layer's footprint is where its ``explained`` pixels come from, holes
+    filled (objects on it included), within the convex hull of where its
+    ``decisive`` pixels (explained at that depth only) come from: flat ground
+    beside a layer is explained at its depth too and would widen it."""
+    if not pixels.any() or not decisive.any():
+        return np.zeros_like(pixels)
+    footprint = _filled(frame, _to_reference(frame, box, explained, depth)) & \
+        _hull(frame, _to_reference(frame, box, decisive, depth))
+    near = cv2.dilate(footprint.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    hit = _lookup(near, _to_reference(frame, box, pixels, 1.0)) & \
+        ~_lookup(footprint, _to_reference(frame, box, pixels, depth))
     out = np.zeros_like(pixels)
     out[pixels] = hit
     return out
+
+
+def _inside(frame, points):
+    shape = frame.ref.shape
+    keep = (points[:, 0] >= 0) & (points[:, 1] >= 0) & (points[:, 0] < shape[0] - 1) & (points[:, 1] < shape[1] - 1)
+    return np.round(points[keep]).astype(np.int32)
+
+
+def _filled(frame, points):
+    """The reference-window pixels under ``points`` (n, 2) (row, col), closed
+    and with their holes filled."""
+    mask = np.zeros(frame.ref.shape, np.uint8)
+    r, c = _inside(frame, points).T
+    mask[r, c] = 1
+    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+    return ndimage.binary_fill_holes(mask)
+
+
+def _hull(frame, points):
+    """The reference-window pixels in the convex hull of ``points`` (n, 2) (row, col)."""
+    mask = np.zeros(frame.ref.shape, np.uint8)
+    xy = _inside(frame, points)[:, ::-1].copy()
+    if len(xy):
+        cv2.fillConvexPoly(mask, cv2.convexHull(xy), 1)
+    return mask > 0
+
+
+def _lookup(mask, points):
+    """``mask`` at the nearest pixel of each of ``points`` (n, 2) (row, col);
+    False outside it."""
+    r, c = np.round(points).astype(int).T
+    ok = (r >= 0) & (c >= 0) & (r < mask.shape[0]) & (c < mask.shape[1])
+    hit = np.zeros(len(r), bool)
+    hit[ok] = mask[r[ok], c[ok]]
+    return hit
 
 
 def _to_reference(frame, box, pixels, depth):
@@ -232,16 +305,21 @@ def _to_reference(frame, box, pixels, depth):
 
 
 def _mark(out, frame, box, component, found, lambda_chi):
+    """Per pixel: the component's pixels explained at the layer's depth are
+    re-rendered there and join ``parallax``, with the ground it hid
+    (disoccluded: no evidence, ``chi`` 0); the rest of the component (a new
+    object on or against the layer) keeps the registration's ``chi``."""
     depth, rendered, explained, disoccluded = found
-    out.parallax[box] |= component
+    out.parallax[box] |= explained | disoccluded
     g = frame.dist[box]
     reg, chi = out.registered[box], out.chi[box]
     reg[explained] = rendered[explained]
     chi[explained] = optimal_chi(g[explained] - rendered[explained], lambda_chi=lambda_chi)
-    chi[component & ~explained] = 0.0
+    chi[disoccluded & ~explained] = 0.0
+    out.kept[box] |= component & ~explained & ~disoccluded
     rows, cols = np.nonzero(component)
     residual = (g - rendered)[explained]
     out.components.append({"row": float(rows.mean() + box[0].start), "col": float(cols.mean() + box[1].start),
-                           "pixels": int(component.sum()), "depth": float(depth),
+                           "pixels": int((explained | disoccluded).sum()), "depth": float(depth),
                            "explained": float(explained.sum() / component.sum()),
                            "rmse": float(np.sqrt(np.mean(residual ** 2)))})

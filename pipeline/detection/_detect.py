@@ -257,7 +257,8 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff):
                  f"rotations kept; {plan.config.changes.layers and 'swept over ' + str(list(ops.LayerParams().depths)) or 'not tested: --no-layers'}) "
                  f"at least {MIN_EXPLAINED:.0%} of its pixels fall below the change threshold "
                  f"and those plus the pixels of ground the layer hid in the reference make up at least "
-                 f"{MIN_COVERED:.0%} of it",
+                 f"{MIN_COVERED:.0%} of it; only its pixels explained at that depth, on the layer's edge or "
+                 "disoccluded join parallax_mask, the rest stays a change candidate",
          "components": _tasks.layer_components(group)})
     tiles.write_spatial_coords(group, plan.distorted.geo, plan.shape)
     group["trajectory"].attrs.update({"pose_axes": list(axes), "units": [ops.AXIS_UNITS[a] for a in axes]})

@@ -53,3 +53,31 @@ def test_without_parallax_nothing_is_a_layer():
     layers = ops.depth_layers(reg, pair.reference, pair.distorted, camera=pair.camera, threshold=plain.threshold)
     assert not (layers.parallax & pair.change_mask).any()
     assert all(c["pixels"] < 60 for c in layers.components)  # at most a few stray residual specks
+
+
+@pytest.mark.parametrize("seed", [1, 7])
+def test_objects_on_and_against_a_block_stay_changes(seed):
+    """Parallax per pixel (issue 15): a new object on a roof or touching a block
+    is not explained at the block's depth and stays a change, while the block
+    itself is parallax.  Registered as ``rsmb detect`` does a tile (register,
+    re-ground, depth step)."""
+    from rsmb.ops.synthetic._raised import AWAY, raised_pair
+
+    pair, objects = raised_pair((256, 256), seed=seed, blocks=2, away=1, block_size=(36, 48), object_size=(14, 20))
+    changes, params = ops.ChangeParams(), ops.RegistrationParams()
+    reg = ops.register(pair.reference, pair.distorted, camera=pair.camera, params=params)
+    threshold = ops.detect_changes(reg, pair.distorted, camera=pair.camera).threshold
+    reg = ops.reground(reg, pair.reference, pair.distorted, camera=pair.camera, params=params, threshold=threshold)
+    layers, _, _ = ops.depth_step(reg, pair.reference, pair.distorted, camera=pair.camera, threshold=threshold,
+                                  space=params.resolved(pair.camera).space, lambda_w=params.lambda_w,
+                                  lambda_chi=params.lambda_chi)
+    score = np.where(layers.parallax | ~reg.valid, 0.0, ops.change_score(layers.chi, layers.registered, params=changes))
+    mask = ops.change_mask(score, threshold, params=changes)
+    near = [m for kind, m in objects if kind != AWAY]
+    assert len(near) == 2 and all(m.sum() > 50 for m in near)
+    for m in near:
+        assert mask[m].mean() >= 0.9
+        assert layers.parallax[m].mean() <= 0.05
+    roofs = pair.parallax_mask & pair.valid
+    assert mask[roofs].mean() <= 0.02  # the blocks (and the ground they hid) are no change
+    assert ops.confusion(mask, pair.change_mask).precision >= 0.95
