@@ -250,6 +250,11 @@ def bench_real(data, workdir, *, workers=None):
         reference, distorted = tiles.read_image(ref_path).data, tiles.read_image(dist_path).data
         registered = {"rsmb": tiles.open_result_store(store)["registered"][:]}
         seconds = {"rsmb": s.timings["total_s"]}
+        # the same run with --no-layers: the depth map's share of the result
+        off = detect(ref_path, dist_path, store, workers=workers, overwrite=True,
+                     config=DetectConfig(changes=ops.ChangeParams(layers=False)))
+        registered["rsmb --no-layers"] = tiles.open_result_store(store)["registered"][:]
+        seconds["rsmb --no-layers"] = off.timings["total_s"]
         for method, run in (("ecc", lambda: ecc_homography(reference, distorted).registered),
                             ("orb", lambda: orb_homography(reference, distorted).registered),
                             ("dis", lambda: dis_flow(reference, distorted))):
@@ -263,13 +268,16 @@ def bench_real(data, workdir, *, workers=None):
             np.sqrt(np.mean((reference[common] - distorted[common]) ** 2)) * 255), "common_fraction": float(common.mean()),
             "rsmb_over_best_homography": rmse["rsmb"] / best_homography, "rsmb_over_dis": rmse["rsmb"] / rmse["dis"],
             "false_change_fraction": s.changed_fraction, "parallax_fraction": s.parallax_pixels / distorted.size,
+            "false_change_fraction_no_layers": off.changed_fraction,
             "clipped_fraction": max(s.clipped_reference, s.clipped_capture)}
         _echo(f"real {name} ({distorted.shape[0]} x {distorted.shape[1]}): registration RMSE rsmb {rmse['rsmb']:.2f}, "
               f"ECC homography {rmse['ecc']:.2f}, ORB homography {rmse['orb']:.2f}, DIS dense flow {rmse['dis']:.2f} "
               f"(no registration {r['identity_rmse_255']:.2f}; 0..255 on the {100 * r['common_fraction']:.0f} % all "
               f"cover): rsmb {r['rsmb_over_best_homography']:.2f}x the better homography, {r['rsmb_over_dis']:.2f}x "
               f"DIS; false changes {100 * r['false_change_fraction']:.2f} % of pixels (parallax "
-              f"{100 * r['parallax_fraction']:.2f} %); rsmb {seconds['rsmb']:.1f} s, DIS {seconds['dis']:.2f} s")
+              f"{100 * r['parallax_fraction']:.2f} %); rsmb {seconds['rsmb']:.1f} s, DIS {seconds['dis']:.2f} s; "
+              f"with --no-layers: RMSE {rmse['rsmb --no-layers']:.2f}, false changes "
+              f"{100 * r['false_change_fraction_no_layers']:.2f} %, {seconds['rsmb --no-layers']:.1f} s")
     if not out:
         _echo(f"real: no rolling-shutter captures under {data}; skipped")
     return out
