@@ -27,6 +27,7 @@ from .changes._changes import (
 from ._errors import InputError, ParameterError, RSMBError, RunError, SolverError
 from ._forward import CameraPath, RenderResult, render
 from ._intensity import IntensityScale, fill_zeros, intensity_scale
+from ._method import MethodResult, method_changes, run_method
 from .depth._depthmap import DepthMapParams, DepthMapResult, depth_map, model_values
 from .depth._depthsolve import AlternateParams, depth_step
 from .depth._layers import LayerParams, LayerResult, depth_layers
@@ -89,6 +90,9 @@ __all__ = [
     "ChangeParams",
     "ChangeResult",
     "detect_changes",
+    "run_method",
+    "MethodResult",
+    "method_changes",
     "change_score",
     "ScoreHistogram",
     "score_histogram",

@@ -169,8 +169,8 @@ def _slow_prior(store, tile, params):
 
 
 def register_task(store, tile, camera, params, changes, prior=None):
-    """Stage 1: register one tile, tell parallax from change on it (when
-    ``changes.layers``) and write its core outputs.  The tile's summary row
+    """Stage 1: read one tile's windows, run the method on them
+    (:func:`ops.run_method`) and write its core outputs.  The tile's summary row
     (histograms, gain, seconds, and 1 in its last column) is written last: it
     marks the tile complete for ``--resume``.
 
@@ -187,110 +187,29 @@ def register_task(store, tile, camera, params, changes, prior=None):
     ty, tx = tile.index
     h, w = tile.core_shape
     with clock.stage("read"):
-        reference = store.read("reference", *tile.window)
-        raw = store.ingested("capture", *tile.core)
-        distorted = store.on_scale(raw, "capture")
+        reference = store.ingested("reference", *tile.window)
+        capture = store.ingested("capture", *tile.core)
     read = time.perf_counter() - start
-    dist_valid = np.isfinite(distorted)
-    capture = np.nan_to_num(distorted)  # NaN: no-data
-    result = ops.register(reference, capture, camera=camera, params=params,
-                          reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
-                          distorted_valid=dist_valid, prior=prior, slow=_slow_prior(store, tile, params))
-    tile.check_core(result.registered)
-    with clock.stage("score"):
-        threshold = _tile_threshold(result, capture, changes)
-    result = ops.reground(result, reference, capture, camera=camera, params=params,
-                          threshold=threshold, min_area=changes.min_area,
-                          reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
-                          distorted_valid=dist_valid)
-    with clock.stage("depth"):
-        layers = _depth_layers(result, reference, capture, camera, tile, params, changes)
-    with clock.stage("score"):
-        chi, model, known = layers.chi, layers.registered, result.valid
-        bounded = _bounded_chi(store, raw, tile, result, camera, params)
-        if bounded is not None:  # the pixels the plane left unscored: their model interval decides
-            chi = np.where(result.valid, chi, bounded[0])
-            model = np.where(result.valid, model, bounded[1])
-            known = result.valid | np.isfinite(bounded[0])
-        score = ops.change_score(chi, model, params=changes)
-        score = np.where(known, score, np.nan)  # NaN: no evidence
-        score = np.where(layers.parallax & np.isfinite(score), 0.0, score)  # parallax is never change, clipped or not
-        residual = np.where(result.valid, distorted - layers.registered, 0.0)
-        hist = ops.score_histogram(residual, score, result.valid)
+    found = ops.run_method(reference, capture, camera=camera, params=params, changes=changes,
+                           intensity=store.intensity, reference_origin_yx=tile.window_origin,
+                           distorted_origin_yx=tile.core_origin, prior=prior, slow=_slow_prior(store, tile, params))
+    result, hist = found.registration, found.histogram
+    tile.check_core(found.registered)
     write_start = time.perf_counter()
     with clock.stage("write"):
-        registered = model if store.intensity is None else store.intensity.to_input(model)
+        registered = found.registered if store.intensity is None else store.intensity.to_input(found.registered)
         _array(store, "registered")[tile.core] = registered  # in the capture's units
-        _array(store, "change_score")[tile.core] = score.astype(np.float32)
-        _array(store, "parallax_mask")[tile.core] = layers.parallax.astype(np.uint8)
-        _array(store, "work/tile_layers")[ty, tx] = _layer_table(layers.components, tile)
+        _array(store, "change_score")[tile.core] = found.score
+        _array(store, "parallax_mask")[tile.core] = found.parallax.astype(np.uint8)
+        _array(store, "work/tile_layers")[ty, tx] = _layer_table(found.components, tile)
         _array(store, "work/tile_rows")[tile.core[0], tx] = np.concatenate(
             [result.trajectory, result.row_state[:, None]], axis=1).astype(np.float32)
         seconds = time.perf_counter() - start
         _array(store, "work/tile_summary")[ty, tx] = np.concatenate(
             [hist.residual, hist.score, [result.gain, seconds, 1.0]])
-    stages = {k[:-2]: v for k, v in {**result.timings, **clock.seconds}.items() if k.endswith("_s")}
+    stages = {k[:-2]: v for k, v in {**found.timings, **clock.seconds}.items() if k.endswith("_s")}
     return {"index": tile.index, "seconds": seconds, "read_s": read, "write_s": time.perf_counter() - write_start,
             "kernel_s": write_start - start - read, "pixels": h * w, "gain": result.gain, "stages": stages}
-
-
-def _bounded_chi(store, raw, tile, result, camera, params):
-    """The change term of the tile's capture pixels that the registration left
-    without a model (its row solves leave clipped pixels out, so a pixel
-    whose search grid touches one, or a clipped capture pixel, has none):
-    each pixel's model interval from its row's active poses and blur, with
-    clipped pixels as bounds (:func:`ops.model_bounds`,
-    :func:`ops.bounded_score`).  Returns (chi, model) on the common scale,
-    NaN where there is no evidence, or None when nothing is clipped (no
-    intensity scale) or every capture pixel with data has its model.
-    ``raw``: the tile's capture as ingested."""
-    need = ~result.valid & np.isfinite(raw)
-    if store.intensity is None or not need.any():
-        return None
-    scale = store.intensity
-    ref_raw = store.ingested("reference", *tile.window)
-    ref_high, ref_low = _at_clip(ref_raw, scale.reference_clip)
-    reference = ref_raw * np.float32(scale.scaled(1.0))  # clipped pixels at their clip levels
-    bounds = ops.model_bounds(result, reference, ref_high, ref_low, need, camera=camera,
-                              reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin)
-    cap_high, cap_low = _at_clip(raw, scale.capture_clip)
-    chi = ops.bounded_score(raw * np.float32(scale.scaled(1.0)), bounds, cap_high, cap_low,
-                            lambda_chi=params.lambda_chi)
-    return np.where(need, chi, np.nan), bounds.model
-
-
-def _at_clip(values, levels):
-    """Pixels at or beyond an image's (floor, saturation) clip levels."""
-    low, high = levels
-    with np.errstate(invalid="ignore"):
-        at_high = values >= np.float32(high) if high is not None else np.zeros(values.shape, bool)
-        at_low = values <= np.float32(low) if low is not None else np.zeros(values.shape, bool)
-    return at_high, at_low
-
-
-def _depth_layers(result, reference, capture, camera, tile, params, changes):
-    """The depth-layer step of one tile with the change threshold of the tile's
-    own residuals (the mosaic's is not known yet): every candidate change
-    tested as a depth layer (:func:`ops.depth_layers`), then a dense
-    relative-depth map of what residual is left (:func:`ops.depth_map`), the
-    rows' weights and the depth map re-estimated in turn where the map took
-    depths widely (:func:`ops.depth_step`); the registration as it is when
-    ``changes.layers`` is off."""
-    if not changes.layers:
-        return ops.LayerResult(np.zeros(result.valid.shape, bool), result.registered, result.chi)
-    threshold = _tile_threshold(result, capture, changes)
-    resolved = params.resolved(camera)
-    out, _, _ = ops.depth_step(result, reference, capture, camera=camera, threshold=threshold, space=resolved.space,
-                               lambda_w=params.lambda_w, lambda_chi=params.lambda_chi,
-                               reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin)
-    return out
-
-
-def _tile_threshold(result, capture, changes):
-    """The change threshold of the tile's own residuals (the mosaic's is not known yet)."""
-    residual = np.where(result.valid, capture - result.registered, 0.0)
-    hist = ops.score_histogram(residual, np.abs(result.chi), result.valid)
-    return ops.change_threshold(hist, params=changes)
 
 
 def _layer_table(components, tile):
