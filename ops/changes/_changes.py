@@ -456,9 +456,9 @@ class ChangeResult:
 
 
 def detect_changes(registration, distorted, *, camera, params=ChangeParams()):
-    """Change masks of a whole image from its :class:`ops.Registration`.
-
-    The tiled pipeline computes the same from the same pieces, tile by tile.
+    """Change masks of a whole image from its :class:`ops.Registration` alone
+    (no re-grounding, depth layers or clipped pixels: the whole method's
+    masks are :func:`ops.method_changes` of :func:`ops.run_method`).
 
     Parameters
     ----------
