@@ -3,26 +3,30 @@ gives the masks ``rsmb detect`` writes for it (one tile: the tile task only
 reads, calls the same function and writes)."""
 
 import numpy as np
+import pytest
 
 from rsmb import ops, tiles
-from rsmb.pipeline import default_overlap
+from rsmb.pipeline import default_overlap, write_pair
 from rsmb.pipeline.cli import main
 
 from ..conftest import read_store
 
 
-def test_ops_on_a_small_pair_gives_the_masks_of_rsmb_detect(tmp_path, small_pair_files):
-    _, ref_path, dist_path = small_pair_files
+@pytest.mark.parametrize("gain", [1.0, 1.5])  # 1.5: the capture's highlights saturate (clipped pixels scored)
+def test_ops_on_a_small_pair_gives_the_masks_of_rsmb_detect(tmp_path, gain):
+    pair = ops.synthesize_pair((160, 200), motion="inplane", changes=4, noise=0.002, gain=gain, seed=5)
+    ref_path, dist_path = write_pair(tmp_path, pair, fmt="png")
     out = tmp_path / "o.zarr"
     assert main(["-q", "detect", str(ref_path), str(dist_path), "-o", str(out), "--tile-size", "256",
                  "--slow-axes", "none"]) == 0
     stored, attrs = read_store(out)
     assert stored["change_mask"].any()  # the pair has changes to find
+    intensity = ops.IntensityScale.from_dict(attrs["intensity"])
+    assert (intensity.capture_clipped > 0.01) == (gain > 1)
 
     reference, capture = (tiles.read_image(p).data for p in (ref_path, dist_path))
     camera = ops.Camera.for_shape(capture.shape)
     params = ops.RegistrationParams(slow_axes=()).resolved(camera)
-    intensity = ops.IntensityScale.from_dict(attrs["intensity"])
     halo = default_overlap(params, camera, capture.shape)  # the reference beyond the image: NaN, as detect reads it
     found = ops.run_method(np.pad(reference, halo, constant_values=np.nan), capture, camera=camera, params=params,
                            intensity=intensity, reference_origin_yx=(-halo, -halo))
