@@ -36,6 +36,7 @@ from scipy import ndimage
 from .._camera import full_poses, pose_homographies
 from .._oracle import optimal_chi
 from .._warp import _build_row
+from ..changes._changes import large_components
 
 __all__ = ["LayerParams", "LayerResult", "depth_layers"]
 
@@ -216,10 +217,7 @@ def _test_component(frame, box, component, depths, threshold, min_area):
         return None
     # what is left of the layer in pieces smaller than a change is its remnant
     rest = component & ~explained & ~disoccluded
-    labels, count = ndimage.label(rest, structure=np.ones((3, 3)))
-    small = np.bincount(labels.ravel(), minlength=count + 1) < min_area
-    small[0] = False
-    return depth, rendered, explained, disoccluded | small[labels]
+    return depth, rendered, explained, disoccluded | (rest & ~large_components(rest, min_area))
 
 
 def _edge(pixels, explained, rendered, g, threshold):
