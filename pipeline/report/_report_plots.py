@@ -98,13 +98,11 @@ def _outline(ax, changed, factor):
     xs = np.concatenate([[0.0], centres[0], [w * factor]])
     ys = np.concatenate([[0.0], centres[1], [h * factor]])
     ax.contour(xs, ys, padded, levels=[0.5], colors=OUTLINE, linewidths=1.4)
-    from scipy import ndimage
+    from skimage import measure
 
-    labels, count = ndimage.label(changed)
-    area = np.bincount(labels.ravel(), minlength=count + 1)
-    small = np.nonzero(area[1:] <= _SMALL)[0] + 1
-    if small.size:
-        cy, cx = np.array(ndimage.center_of_mass(changed, labels, small)).T
+    small = [r.centroid for r in measure.regionprops(measure.label(changed, connectivity=1)) if r.area <= _SMALL]
+    if small:
+        cy, cx = np.array(small).T
         ax.scatter((cx + 0.5) * factor, (cy + 0.5) * factor, s=120, facecolors="none", edgecolors=OUTLINE,
                    linewidths=1.4)
     ax.set_xlim(0, w * factor)
