@@ -48,7 +48,7 @@ def _quiet_library_warnings():
 
 
 @cli.command()
-@click.argument("reference", type=click.Path(dir_okay=True))
+@click.argument("reference", nargs=-1, required=True, type=click.Path(dir_okay=True))
 @click.argument("distorted", type=click.Path(dir_okay=True))
 @click.option("-o", "--output", required=True, type=click.Path(), help="Output zarr store.")
 @registration_options
@@ -65,12 +65,17 @@ def _quiet_library_warnings():
 def detect(reference, distorted, output, axes, half_width, step, slow_axes, search, shutter, solver, lambda_w,
            lambda_chi, threshold, min_area, no_layers, focal, tile_size, overlap, scheduler, workers, worker_timeout,
            resume, overwrite, geotiff, as_json):
-    """Register DISTORTED against REFERENCE and write change masks to a zarr store."""
+    """Register DISTORTED against REFERENCE and write change masks to a zarr store.
+
+    REFERENCE is one image, or, for a georeferenced capture, a reference set:
+    several files, a folder of them, or a VRT (a mosaic: the first file with
+    data wins).  Any raster GDAL opens is an input (GeoTIFF, COG, VRT, JPEG
+    2000, PNG, JPEG ...), and .npy files and zarr arrays."""
     from .detection._detect import detect as run
 
     config = build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold,
                           min_area, focal, tile_size, overlap, slow_axes=slow_axes, layers=not no_layers)
-    summary = run(reference, distorted, output, config=config, scheduler=scheduler, workers=workers,
+    summary = run(list(reference), distorted, output, config=config, scheduler=scheduler, workers=workers,
                   overwrite=overwrite, resume=resume, geotiff=geotiff, worker_timeout=worker_timeout)
     _print_summary(summary, as_json)
 

@@ -15,6 +15,7 @@ from ._pairing import Pairing, pair_images
 from ._ingest import (WindowStats, block_overview, check_stats, ingest_core, overview_cells, read_clipped,
                       read_padded)
 from ._geo import GeoInfo, write_spatial_coords
+from ._sources import expand_references
 from ._io import (
     ImageInfo,
     Raster,
@@ -93,4 +94,5 @@ __all__ = [
     "LockBusy",
     "LockError",
     "acquire_lock",
+    "expand_references",
 ]

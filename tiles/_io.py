@@ -25,7 +25,7 @@ import numpy as np
 from rsmb.ops._errors import InputError, ParameterError
 
 from ._geo import GeoInfo
-from ._sources import open_source
+from ._sources import expand_references, open_source
 
 
 @dataclass(frozen=True, eq=False)

@@ -128,8 +128,9 @@ class _Source:
 
 
 class RasterioSource(_Source):
-    """GeoTIFF/TIFF, PNG and JPEG through rasterio (GDAL): windowed reads, every
-    band, alpha from the colour interpretation or the band count."""
+    """GeoTIFF/TIFF, PNG and JPEG, and any other raster GDAL opens (VRT,
+    JPEG 2000, COG ...: :func:`open_source` tries), through rasterio: windowed
+    reads, every band, alpha from the colour interpretation or the band count."""
 
     extensions = (".tif", ".tiff", ".png", ".jpg", ".jpeg")
 
@@ -303,10 +304,73 @@ def open_source(path: str) -> _Source:
     for fmt in _FORMATS:
         if fmt.accepts(path):
             return fmt(path)
+    if _gdal_opens(path):  # any raster GDAL reads (VRT, JPEG 2000, COG ...), known by opening it
+        return RasterioSource(path)
     extensions = ", ".join(ext for fmt in _FORMATS for ext in fmt.extensions)
     others = "".join(f" or {fmt.label}" for fmt in _FORMATS if fmt.label)
     ext = os.path.splitext(path)[1].lower()
     raise InputError(
         f"{path}: unsupported format {ext or '(no extension)'!r}; "
-        f"expected one of {extensions}{others}"
+        f"expected one of {extensions}{others}, or any other raster GDAL opens (this one it does not)"
     )
+
+
+def _gdal_opens(path: str) -> bool:
+    """Whether GDAL opens the file ``path`` as a raster (its header only)."""
+    if os.path.isdir(path):
+        return False
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(path) as ds:
+                return ds.count > 0 and ds.width > 0 and ds.height > 0
+    except (RasterioIOError, OSError, ValueError):
+        return False
+
+
+def is_zarr_array(path: str) -> bool:
+    """Whether the directory ``path`` is a zarr array (v3 ``zarr.json`` of
+    node type array, or v2 ``.zarray``)."""
+    import json
+
+    if os.path.isfile(os.path.join(path, ".zarray")):
+        return True
+    try:
+        with open(os.path.join(path, "zarr.json")) as fh:
+            return json.load(fh).get("node_type") == "array"
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def expand_references(paths) -> list[str]:
+    """A reference set as files: each of ``paths`` is a raster file (GDAL's,
+    ``.npy``), a zarr array directory, or a folder of reference files (its
+    rasters, sorted by name; other files left out).  Mosaic order is kept:
+    the first file with data wins.
+
+    Raises
+    ------
+    InputError
+        A folder with no raster in it (named).
+    """
+    out = []
+    for path in paths:
+        path = os.fspath(path)
+        if not os.path.isdir(path) or is_zarr_array(path):
+            out.append(path)
+            continue
+        found = []
+        for name in sorted(os.listdir(path)):
+            member = os.path.join(path, name)
+            if name.startswith(".") or not os.path.isfile(member):
+                continue
+            if os.path.splitext(name)[1].lower() in NumpySource.extensions + RasterioSource.extensions \
+                    or _gdal_opens(member):
+                found.append(member)
+        if not found:
+            raise InputError(f"{path}: a folder of reference files with no raster in it")
+        out.extend(found)
+    return out

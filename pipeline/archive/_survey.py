@@ -262,7 +262,7 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
     config = config or DetectConfig()
     if config.tile is None:  # captures run side by side: one large tile each keeps the cores busy
         config = dataclasses.replace(config, tile=SURVEY_TILE)
-    references = [os.path.abspath(r) for r in references]
+    references = [os.path.abspath(r) for r in tiles.expand_references(references)]
     out = Path(out_dir).absolute()
     _check_invocation(references, captures, out, scheduler)
     found = find_captures(captures, out)

@@ -351,7 +351,8 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
     """
     t_start = time.perf_counter()
     config = config or DetectConfig()
-    references = [os.path.abspath(r) for r in ([reference] if isinstance(reference, (str, os.PathLike)) else reference)]
+    references = [os.path.abspath(r) for r in tiles.expand_references(
+        [reference] if isinstance(reference, (str, os.PathLike)) else reference)]
     distorted, output = os.path.abspath(distorted), os.path.abspath(output)
     geotiff = None if geotiff is None else os.path.abspath(geotiff)
     plan = _plan(references, distorted, output, config)
