@@ -47,7 +47,7 @@ from ..detection._detect import detect
 from ..detection._plan import VERSION, DetectConfig
 from ._ledger import LEDGER_NAME, SETTLE, FileStat, Ledger, RunKey
 from ..detection._outputs import write_products
-from .._scheduler import check_scheduler, open_runner
+from .._scheduler import WORKER_TIMEOUT, check_scheduler, open_runner
 
 __all__ = ["SurveyResult", "CaptureResult", "survey", "find_captures", "check_output"]
 
@@ -209,7 +209,7 @@ def _parameters(config, shape=None):
 
 
 def survey(references, captures, out_dir, *, config=None, scheduler="threads", workers=None, parallel=None,
-           dry_run=False, worker_timeout=60.0, report=True, settle=SETTLE, stop=None):
+           dry_run=False, worker_timeout=WORKER_TIMEOUT, report=True, settle=SETTLE, stop=None):
     """Run a night: every capture the glob ``captures`` finds, against the
     georeferenced reference set ``references`` (DESIGN.md, "Survey archives").
 

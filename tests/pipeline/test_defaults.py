@@ -84,7 +84,9 @@ def test_options_left_at_their_defaults_build_the_default_config(tmp_path):
 
 
 def test_runtime_defaults_are_one_value():
-    for function in (open_runner, detect):
+    from rsmb.pipeline.archive._survey import survey
+
+    for function in (open_runner, detect, survey):
         assert inspect.signature(function).parameters["worker_timeout"].default == WORKER_TIMEOUT
 
 
