@@ -23,12 +23,14 @@ nothing: its whole support clipped, or the capture clipped on the side the
 model is open (both say "at least as bright", or both "at most as dark").
 """
 
+import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from .._oracle import optimal_chi
-from ..depth._depthmap import _RowPoses, _geometry
+from ..depth._depthmap import _RowPoses, _geometry, _pose_maps
 
 __all__ = ["ModelBounds", "model_bounds", "bounded_score"]
 
@@ -80,20 +82,70 @@ def model_bounds(registration, reference, high, low, mask, *, camera, reference_
     ModelBounds
     """
     rows = _RowPoses.of(registration, mask.shape[0])
-    geometry = _geometry(camera, reference_origin_yx, distorted_origin_yx)
+    focal, cx, cy, dy, dx = _geometry(camera, reference_origin_yx, distorted_origin_yx)
     ref = np.ascontiguousarray(reference, np.float32)
-    data = np.isfinite(ref)
-    mask = np.asarray(mask, bool)
+    state = np.where(np.asarray(high, bool), 1, np.where(np.asarray(low, bool), 2, 0)).astype(np.int8)
+    shape = np.shape(mask)
+    model = np.full(shape, np.nan, np.float32)
+    high_share, low_share = np.full(shape, np.nan, np.float32), np.full(shape, np.nan, np.float32)
+    if len(rows.poses6):
+        _bounds(ref, state, _pose_maps(rows.poses6, focal, cx, cy), rows.poses6, rows.weights, rows.offsets,
+                rows.gain, cx, cy, dy, dx, np.asarray(mask, np.uint8), model, high_share, low_share)
+    return ModelBounds(model, high_share, low_share)
 
-    def render(values):
-        return rows.render(np.ascontiguousarray(np.where(data, values, np.nan), np.float32), geometry, 1.0, mask)
 
-    model = rows.render(ref, geometry, 1.0, mask)
-    total = render(1.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        high_share = np.clip(render(np.asarray(high, np.float32)) / total, 0.0, 1.0)
-        low_share = np.clip(render(np.asarray(low, np.float32)) / total, 0.0, 1.0)
-    return ModelBounds(model, high_share.astype(np.float32), low_share.astype(np.float32))
+@numba.njit(nogil=True, cache=True)
+def _bounds(ref, state, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, mask, model, high_share, low_share):
+    """:func:`model_bounds` in one pass: each pixel's weighted poses sample
+    the reference bilinearly (as :func:`ops.model_values` does) and the
+    clipped ``state`` (1 saturated, 2 at 0) with the same weights; NaN where
+    a pose leaves valid reference data."""
+    height, width = model.shape
+    hr, wr = ref.shape
+    per_column = gain.shape[0] == width
+    for i in range(height):
+        s0, s1 = offsets[i], offsets[i + 1]
+        if s0 == s1:
+            continue
+        for j in range(width):
+            if mask[i, j] == 0:
+                continue
+            acc, total, up, down, ok = 0.0, 0.0, 0.0, 0.0, True
+            for k in range(s0, s1):
+                m = maps[k]
+                sc = 1.0 + poses6[k, 2]
+                ux = (j + dx - cx - poses6[k, 0]) / sc
+                uy = (i + dy - cy - poses6[k, 1]) / sc
+                h2 = m[6] * ux + m[7] * uy + m[8]
+                u = (m[0] * ux + m[1] * uy + m[2]) / h2 + cx
+                v = (m[3] * ux + m[4] * uy + m[5]) / h2 + cy
+                if not (u >= 0.0 and v >= 0.0 and u <= wr - 1 and v <= hr - 1):
+                    ok = False
+                    break
+                iu, iv = min(int(u), wr - 2), min(int(v), hr - 2)
+                fu, fv = u - iu, v - iv
+                val, hi, lo = 0.0, 0.0, 0.0
+                for a in range(2):
+                    for b in range(2):
+                        c = (fv if a else 1.0 - fv) * (fu if b else 1.0 - fu)
+                        val += c * ref[iv + a, iu + b]
+                        s = state[iv + a, iu + b]
+                        if s == 1:
+                            hi += c
+                        elif s == 2:
+                            lo += c
+                if math.isnan(val):
+                    ok = False
+                    break
+                w = weights[k]
+                acc += w * val
+                total += w
+                up += w * hi
+                down += w * lo
+            if ok and total > 0.0:
+                model[i, j] = acc * (gain[j] if per_column else 1.0)
+                high_share[i, j] = min(max(up / total, 0.0), 1.0)
+                low_share[i, j] = min(max(down / total, 0.0), 1.0)
 
 
 def bounded_score(capture, bounds, capture_high, capture_low, *, lambda_chi):

@@ -84,6 +84,8 @@ def test_the_bound_footprint_is_the_active_poses_times_the_blur():
     reg = ops.register(holed, pair.distorted, camera=pair.camera)
     blind = ~reg.valid
     bounds = ops.model_bounds(reg, reference, high, np.zeros(reference.shape, bool), blind, camera=pair.camera)
+    # the model is the registration's (ops.model_values) with the clipped pixel at its level
+    np.testing.assert_allclose(bounds.model, ops.model_values(reg, reference, blind, camera=pair.camera), atol=1e-5)
     opened = np.nan_to_num(bounds.high_share) > TOUCH
     assert blind.sum() >= 80 and opened.any()
     assert opened.sum() <= 0.25 * blind.sum(), (opened.sum(), blind.sum())
