@@ -218,7 +218,7 @@ def _check_captures(ctx, param, value):
 @click.option("--captures", required=True, callback=_check_captures,
               help="Glob of the night's captures ('**' recurses); quote it.")
 @click.option("-o", "--output", "out_dir", required=True, type=click.Path(),
-              help="The survey's folder: one folder per capture, ledger.sqlite, nights/, index.html, the change "
+              help="The survey's folder: captures/<capture path>/ per capture, ledger.sqlite, nights/, index.html, the change "
                    "history changes.gpkg and the STAC catalog stac/. New, empty, "
                    "or the folder of earlier nights.")
 @registration_options
@@ -242,11 +242,16 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes
            parallel, settle, dry_run, no_report, as_json):
     """A night of georeferenced captures (--captures GLOB) against REFERENCE files.
 
-    Each capture gets a folder with its store, changes.gpkg, COGs, thumbnail
-    and report; a capture done with the same inputs and parameters is skipped.
+    Each capture gets a folder (captures/<its path>/) with its store,
+    changes.gpkg, COGs, thumbnail and report; a capture done with the same
+    inputs and parameters is skipped, one modified less than --settle seconds
+    ago waits for the next night.  One night at a time per folder (a second
+    exits 2).  Ctrl-C or SIGTERM stops the night, recording what finished
+    (exit 130 or 143).
     Across nights: the change history (changes.gpkg: new, persisting, gone,
     unobserved), a STAC catalog (stac/) and a map on index.html.
-    Exit code 3 when some captures failed (the rest finished)."""
+    Exit code 3 when some captures failed (the rest finished), 2 for bad
+    input (a captures folder that does not exist included)."""
     from .archive._survey import survey as run
 
     config = build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold,
