@@ -8,6 +8,8 @@ parameter dataclasses (:class:`ops.RegistrationParams`, :class:`ops.ChangeParams
 :class:`DetectConfig`), in the options' own text form, and the workflow models
 take theirs from it too, so a default changes in one place."""
 
+import inspect
+
 import click
 import numpy as np
 
@@ -17,7 +19,7 @@ from rsmb.ops.registration._params import SEARCH
 from ._scheduler import WORKER_TIMEOUT
 from .detection._plan import DetectConfig
 
-__all__ = ["METHOD_DEFAULTS", "build_config", "registration_options", "runtime_options", "tile_option"]
+__all__ = ["METHOD_DEFAULTS", "SYNTH_DEFAULTS", "build_config", "registration_options", "runtime_options", "tile_option"]
 
 
 def _text(values):
@@ -41,6 +43,18 @@ def _method_defaults():
 #: option name (underscores) -> its default, as the command line spells it
 METHOD_DEFAULTS = _method_defaults()
 _D = METHOD_DEFAULTS
+
+
+def _synth_defaults():
+    from ._synth import synth
+
+    return {name: p.default for name, p in inspect.signature(synth).parameters.items()
+            if p.default is not inspect.Parameter.empty}
+
+
+#: the keyword defaults of :func:`pipeline.synth`, which ``rsmb synth`` and a
+#: workflow's synth step take as theirs
+SYNTH_DEFAULTS = _synth_defaults()
 
 
 def _floats(text, name, count=None, allow_auto=False, minimum=None, positive=False):

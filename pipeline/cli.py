@@ -14,6 +14,7 @@ import click
 from rsmb import ops
 from rsmb.ops import RSMBError
 
+from ._options import SYNTH_DEFAULTS as _S
 from ._options import Number, _check_scheduler, _floats, build_config, registration_options, runtime_options, \
     tile_option
 from .archive._ledger import SETTLE
@@ -92,17 +93,19 @@ def _print_summary(summary, as_json):
 
 @cli.command()
 @click.argument("out_dir", type=click.Path(file_okay=False))
-@click.option("--size", default="512,512", show_default=True, help="H,W of the images.")
-@click.option("--motion", type=click.Choice(sorted(ops.MOTIONS)), default="inplane", show_default=True)
-@click.option("--shutter", type=click.Choice(["rolling", "global"]), default="rolling", show_default=True)
-@click.option("--exposure", type=Number(min=0), default=None, help="Row exposure in row periods (default H/16).")
-@click.option("--scale", type=Number(), default=1.0, show_default=True, help="Multiplies every motion amplitude.")
-@click.option("--gain", default="1.0", show_default=True,
+@click.option("--size", default=",".join(map(str, _S["shape"])), show_default=True, help="H,W of the images.")
+@click.option("--motion", type=click.Choice(sorted(ops.MOTIONS)), default=_S["motion"], show_default=True)
+@click.option("--shutter", type=click.Choice(["rolling", "global"]), default=_S["shutter"], show_default=True)
+@click.option("--exposure", type=Number(min=0), default=_S["exposure"], help="Row exposure in row periods (default H/16).")
+@click.option("--scale", type=Number(), default=_S["scale"], show_default=True, help="Multiplies every motion amplitude.")
+@click.option("--gain", default=str(_S["gain"]), show_default=True,
               help="Illumination gain, or LEFT,RIGHT for a gain varying across the columns.")
-@click.option("--changes", type=click.IntRange(min=0), default=8, show_default=True, help="Number of pasted objects.")
-@click.option("--noise", type=Number(min=0), default=0.002, show_default=True, help="Noise sigma, intensities in [0, 1].")
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--format", "fmt", type=click.Choice(["png", "tif", "npy"]), default="png", show_default=True,
+@click.option("--changes", type=click.IntRange(min=0), default=_S["changes"], show_default=True,
+              help="Number of pasted objects.")
+@click.option("--noise", type=Number(min=0), default=_S["noise"], show_default=True,
+              help="Noise sigma, intensities in [0, 1].")
+@click.option("--seed", type=int, default=_S["seed"], show_default=True)
+@click.option("--format", "fmt", type=click.Choice(["png", "tif", "npy"]), default=_S["fmt"], show_default=True,
               help="png (16 bit), tif (GeoTIFF with a made-up UTM georeferencing) or npy (float32).")
 @click.option("--overwrite", is_flag=True, help="Write into a non-empty directory.")
 def synth(out_dir, size, motion, shutter, exposure, scale, gain, changes, noise, seed, fmt, overwrite):

@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from rsmb import ops
 
 from .._options import METHOD_DEFAULTS as _D
+from .._options import SYNTH_DEFAULTS as _S
 from ..archive._ledger import SETTLE
 
 __all__ = ["DetectOptions", "DetectStep", "EvaluateStep", "ReportStep", "STEPS", "SurveyStep", "SynthStep",
@@ -89,16 +90,18 @@ class DetectStep(DetectOptions):
 
 class SynthStep(_Model):
     out_dir: Path
-    size: Annotated[int, Field(ge=32)] | tuple[Annotated[int, Field(ge=32)], Annotated[int, Field(ge=32)]] = 512
-    motion: Literal[tuple(sorted(ops.MOTIONS))] = "inplane"
-    shutter: Literal["rolling", "global"] = "rolling"
-    exposure: Annotated[float, Field(ge=0)] | None = None
-    scale: float = 1.0
-    gain: Annotated[float, Field(gt=0)] | tuple[Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]] = 1.0
-    changes: Annotated[int, Field(ge=0)] = 8
-    noise: Annotated[float, Field(ge=0)] = 0.002
-    seed: int = 0
-    format: Literal["png", "tif", "npy"] = "png"
+    size: Annotated[int, Field(ge=32)] | tuple[Annotated[int, Field(ge=32)], Annotated[int, Field(ge=32)]] = \
+        _S["shape"]
+    motion: Literal[tuple(sorted(ops.MOTIONS))] = _S["motion"]
+    shutter: Literal["rolling", "global"] = _S["shutter"]
+    exposure: Annotated[float, Field(ge=0)] | None = _S["exposure"]
+    scale: float = _S["scale"]
+    gain: Annotated[float, Field(gt=0)] | tuple[Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]] = \
+        _S["gain"]
+    changes: Annotated[int, Field(ge=0)] = _S["changes"]
+    noise: Annotated[float, Field(ge=0)] = _S["noise"]
+    seed: int = _S["seed"]
+    format: Literal["png", "tif", "npy"] = _S["fmt"]
 
     def writes(self):
         return [self.out_dir, self.out_dir / f"reference.{self.format}", self.out_dir / f"distorted.{self.format}",

@@ -99,3 +99,18 @@ def test_the_row_solver_has_one_set_of_settings():
     depth = {f.name: f.default for f in dataclasses.fields(ops.AlternateParams)}
     for name, value in (("tol", TOL), ("max_outer", MAX_OUTER), ("max_add", MAX_ADD)):
         assert getattr(REG, name) == depth[name] == defaults[name].default == value, name
+
+
+def test_synth_defaults_are_the_functions():
+    """``rsmb synth`` and a workflow's synth step default to rsmb.synth's keywords."""
+    from rsmb.pipeline import synth
+    from rsmb.pipeline.workflow._workflow_steps import SynthStep
+
+    function = {n: p.default for n, p in inspect.signature(synth).parameters.items() if n != "out_dir"}
+    options = {p.name: p.default for p in cli.commands["synth"].params}
+    fields = SynthStep.model_fields
+    assert tuple(int(v) for v in options["size"].split(",")) == function["shape"] == fields["size"].default
+    assert float(options["gain"]) == function["gain"] == fields["gain"].default
+    assert options["fmt"] == function["fmt"] == fields["format"].default
+    for name in ("motion", "shutter", "exposure", "scale", "changes", "noise", "seed"):
+        assert options[name] == function[name] == fields[name].default, name
