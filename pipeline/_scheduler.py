@@ -8,11 +8,13 @@ task.
 
 Process-wide settings (:func:`configure_process`: OpenCV's and BLAS's thread
 counts, glibc's mmap threshold) are made only in processes that exist to run
-rsmb: worker processes (``processes`` scheduler, dask.distributed workers),
-where each task makes them once, and the ``rsmb`` command itself.  A program that imports rsmb
-as a library keeps its settings: while :meth:`Runner.map` runs tasks in the
-calling process (``threads``, ``synchronous``), OpenCV's and BLAS's thread
-counts are set to one and restored when the run ends, and malloc is left alone.
+rsmb: the ``processes`` scheduler's worker processes, where each task makes
+them once, and the ``rsmb`` command itself.  A program that imports rsmb as a
+library keeps its settings: while :meth:`Runner.map` runs tasks in the calling
+process (``threads``, ``synchronous``), OpenCV's and BLAS's thread counts are
+set to one and restored when the run ends, and malloc is left alone.  So does a
+dask.distributed worker (a cluster may be shared with other work): one thread
+each while rsmb's tasks run there, its own counts back after the last of them.
 """
 
 import contextlib
@@ -230,7 +232,8 @@ class Runner:
         from distributed import wait
 
         n, owner = len(argument_lists), os.getpid()
-        futures = [self.client.submit(_call, func, args, owner, pure=False, priority=n - i)
+        # a cluster's workers are not rsmb's own: its tasks leave their settings as they found them
+        futures = [self.client.submit(_call, func, args, owner, False, pure=False, priority=n - i)
                    for i, args in enumerate(argument_lists)]
         pending = set(futures)
         while pending:
@@ -270,12 +273,20 @@ class Runner:
             return list(dask.compute(*tasks, scheduler=self.scheduler, **kw))
 
 
-def _call(func, args, owner_pid):
-    """Run one task; in a process other than the one that called Runner.map
-    (a worker process), make the process-wide settings first."""
-    if os.getpid() != owner_pid:
+def _call(func, args, owner_pid, owned=True):
+    """Run one task.  In a worker process rsmb owns (``processes``), make the
+    process-wide settings first (:func:`configure_process`); in a worker it
+    does not own (``owned`` False: a dask.distributed worker, possibly
+    shared), one OpenCV and one BLAS thread while rsmb's tasks run there, the
+    worker's own counts restored after the last of them, and malloc left
+    alone (its setting cannot be undone)."""
+    if os.getpid() == owner_pid:
+        return func(*args)
+    if owned:
         configure_process()
-    return func(*args)
+        return func(*args)
+    with _one_thread_each():
+        return func(*args)
 
 
 class _DaskProgress(dask.callbacks.Callback):

@@ -94,3 +94,32 @@ def test_slurm_without_configuration_is_bad_input(capsys):
         with pytest.raises(InputError, match="slurm"):
             jobqueue_cluster("slurm")
     assert os.environ.get("SLURM_JOB_ID") is None  # nothing was submitted: no SLURM here
+
+
+def test_tasks_leave_a_shared_workers_thread_settings_as_they_found_them(tmp_path, small_pair_files, dask_cluster):
+    """A cluster worker (not rsmb's) with OpenCV at 3 threads and its BLAS
+    libraries at their own counts: after an rsmb run on it, the same counts."""
+    from distributed import Client
+
+    file, _ = dask_cluster
+    _, ref, dist = small_pair_files
+
+    def settings(threads=None):
+        import cv2
+        from threadpoolctl import threadpool_info
+
+        if threads is not None:
+            cv2.setNumThreads(threads)
+        return cv2.getNumThreads(), {i["filepath"]: i["num_threads"] for i in threadpool_info()
+                                     if i["user_api"] == "blas"}
+
+    with Client(scheduler_file=str(file), timeout="30s") as client:
+        client.wait_for_workers(1, timeout=60)
+        before = list(client.run(settings, 3).values())[0]
+        assert before[0] == 3
+        assert main(["-q", "detect", str(ref), str(dist), "-o", str(tmp_path / "o.zarr"), "--tile-size", "128",
+                     "--scheduler", str(file)]) == 0
+        after = list(client.run(settings).values())[0]
+    assert after[0] == before[0] == 3 and before[1]
+    # every BLAS the worker had keeps its count (one the tasks loaded, by importing scipy, keeps its default)
+    assert {path: after[1][path] for path in before[1]} == before[1]
