@@ -26,6 +26,7 @@ content (a pasted change) is explained at no depth and stays in ``chi``.
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numba
@@ -141,11 +142,10 @@ def depth_map(registration, reference, distorted, *, camera, threshold, referenc
     best = np.full(g.shape, np.inf, np.float32)
     chosen = np.full(g.shape, np.nan, np.float32)
     depth = np.ones(g.shape, np.float32)
-    geometry = _geometry(camera, reference_origin_yx, distorted_origin_yx)
-    ref = np.ascontiguousarray(reference, np.float32)
-    _sweep(ref, rows.poses6, rows.weights, rows.offsets, rows.gain, *geometry, qs.astype(np.float64),
-           render_mask.astype(np.uint8), active.astype(np.uint8), np.ascontiguousarray(g), tau, int(params.window),
-           int(params.stride), best, chosen, depth)
+    scene = rows.scene(reference, _geometry(camera, reference_origin_yx, distorted_origin_yx))
+    fit = _Fit(np.ascontiguousarray(g), render_mask.astype(np.uint8), active.astype(np.uint8), tau,
+               int(params.window) // 2)
+    _sweep(scene, fit, qs.astype(np.float64), int(params.stride), _Best(best, chosen, depth, np.full(g.shape, -1)))
     take = active & np.isfinite(chosen) & (best <= params.gain * cost_plane)
     out.registered[take] = chosen[take]
     out.inverse_depth[take] = depth[take]
@@ -176,9 +176,9 @@ def model_values(registration, reference, mask, *, camera, reference_origin_yx=(
         NaN off ``mask``, in rows without weights and where a pose leaves
         valid reference data.
     """
-    rows = _RowPoses.of(registration, mask.shape[0])
-    return rows.render(np.ascontiguousarray(reference, np.float32),
-                       _geometry(camera, reference_origin_yx, distorted_origin_yx), 1.0, np.asarray(mask, bool))
+    scene = _RowPoses.of(registration, mask.shape[0]).scene(
+        reference, _geometry(camera, reference_origin_yx, distorted_origin_yx))
+    return render_at(scene, 1.0, np.asarray(mask, bool))
 
 
 def _active(residual, valid, tau, window):
@@ -236,11 +236,77 @@ class _RowPoses:
         return float(np.max(np.hypot(self.poses6[:, 0], self.poses6[:, 1])))
 
     def render(self, ref, geometry, q, mask):
-        out = np.full(mask.shape, np.nan, np.float32)
-        maps = _pose_maps(self.poses6, *geometry[:3])
-        _render_depth(ref, maps, self.poses6, self.weights, self.offsets, self.gain, *geometry[1:], q,
-                      mask.astype(np.uint8), out)
-        return out
+        """:func:`render_at` of these poses over ``ref`` (whole capture window)."""
+        return render_at(self.scene(ref, geometry), q, mask)
+
+    def scene(self, reference, geometry):
+        """The :class:`_Scene` of these poses over ``reference`` with ``geometry``
+        (:func:`_geometry`)."""
+        focal, cx, cy, dy, dx = geometry
+        return _Scene(np.ascontiguousarray(reference, np.float32), _pose_maps(self.poses6, focal, cx, cy),
+                      self.poses6, self.weights, self.offsets, self.gain, cx, cy, dy, dx)
+
+
+class _Scene(NamedTuple):
+    """What rendering the rows' weighted poses at an inverse depth needs: the
+    reference window, every pose's rotation map (:func:`_pose_maps`), poses,
+    weights and row offsets (:class:`_RowPoses`), the column gain, the
+    principal point in the reference window and the capture window's offset
+    in it (px)."""
+
+    ref: np.ndarray
+    maps: np.ndarray
+    poses6: np.ndarray
+    weights: np.ndarray
+    offsets: np.ndarray
+    gain: np.ndarray
+    cx: float
+    cy: float
+    dy: float
+    dx: float
+
+
+class _Fit(NamedTuple):
+    """What the sweep compares renderings with: the capture window, where to
+    render, which pixels choose a depth (uint8), the truncation ``tau`` and the
+    half side of the cost window (px)."""
+
+    g: np.ndarray
+    render_mask: np.ndarray
+    active: np.ndarray
+    tau: float
+    half: int
+
+
+class _Best(NamedTuple):
+    """The sweep's answer per pixel: lowest window cost, the value and inverse
+    depth that gave it, and the index of the best coarse depth (-1: none)."""
+
+    best: np.ndarray
+    chosen: np.ndarray
+    depth: np.ndarray
+    index: np.ndarray
+
+
+class _Scratch(NamedTuple):
+    """One depth's buffers: pixels rendered, truncated residual, rendered
+    values, residual summed along rows."""
+
+    want: np.ndarray
+    err: np.ndarray
+    rendered: np.ndarray
+    across: np.ndarray
+
+
+def render_at(scene, q, mask, origin_yx=(0, 0)):
+    """The rows' weighted poses at inverse depth ``q`` (translations and scale
+    times ``q``, rotations as they are) applied to the reference, times the
+    column gain, at the pixels of ``mask`` (bool, a window of the capture
+    window at ``origin_yx``): float32, NaN elsewhere and where a pose leaves
+    valid reference data.  The one renderer of the depth steps."""
+    out = np.full(mask.shape, np.nan, np.float32)
+    _render_depth(scene, float(q), np.ascontiguousarray(mask, np.uint8), out, int(origin_yx[0]), int(origin_yx[1]))
+    return out
 
 
 @numba.njit(nogil=True, cache=True)
@@ -269,77 +335,72 @@ def _render_pixel(ref, maps, poses6, weights, s0, s1, q, x, y, cx, cy):
 
 
 @numba.njit(nogil=True, cache=True)
-def _render_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, q, mask, out):
-    """``out[i, j]`` = row ``i``'s weighted poses at inverse depth ``q``
-    (``maps``: :func:`_pose_maps`) applied to ``ref``, times the column gain,
+def _render_depth(scene, q, mask, out, r0, c0):
+    """``out[i, j]`` = capture row ``r0 + i``'s weighted poses at inverse depth
+    ``q`` applied to the reference at column ``c0 + j``, times the column gain,
     where ``mask``; NaN where a pose leaves valid reference data."""
     height, width = out.shape
-    per_column = gain.shape[0] == width
+    per_column = scene.gain.shape[0] != 1
     for i in range(height):
-        s0, s1 = offsets[i], offsets[i + 1]
+        s0, s1 = scene.offsets[r0 + i], scene.offsets[r0 + i + 1]
         if s0 == s1:
             continue
         for j in range(width):
             if mask[i, j] != 0:
-                val = _render_pixel(ref, maps, poses6, weights, s0, s1, q, j + dx, i + dy, cx, cy)
+                val = _render_pixel(scene.ref, scene.maps, scene.poses6, scene.weights, s0, s1, q,
+                                    c0 + j + scene.dx, r0 + i + scene.dy, scene.cx, scene.cy)
                 if not math.isnan(val):
-                    out[i, j] = val * (gain[j] if per_column else 1.0)
+                    out[i, j] = val * (scene.gain[c0 + j] if per_column else 1.0)
 
 
 @numba.njit(nogil=True, cache=True)
-def _sweep(ref, poses6, weights, offsets, gain, focal, cx, cy, dy, dx, qs, render_mask, active, g, tau, window,
-           stride, best, chosen, depth):
+def _sweep(scene, fit, qs, stride, best):
     """The depths of ``qs`` (ascending), coarse to fine: every ``stride``-th
-    depth (and the last) at every ``active`` pixel, then each active pixel
+    depth (and the last) at every ``fit.active`` pixel, then each active pixel
     the depths within ``stride`` steps of its best coarse one.  A depth is
-    rendered where ``render_mask`` (as :func:`_render_depth`) and, in the fine
-    pass, where the best coarse depths of the active pixels in the window
-    span a range within ``stride`` steps of it; its residual,
-    truncated at ``tau`` (``tau`` where not rendered), is averaged over the
-    ``window`` square (borders replicated, as :func:`_window_cost`), and an
-    active pixel takes the depth (``best`` cost, ``chosen`` value, ``depth``)
-    where its cost is lower than every earlier evaluated depth's.  With
-    ``stride`` 1 every depth is evaluated everywhere."""
-    height, width = g.shape
+    rendered where ``fit.render_mask`` (as :func:`_render_depth`) and, in the
+    fine pass, where the best coarse depths of the active pixels in the window
+    span a range within ``stride`` steps of it; its residual, truncated at
+    ``fit.tau`` (``tau`` where not rendered), is averaged over the window
+    (side ``2 * fit.half + 1``, borders replicated, as :func:`_window_cost`),
+    and an active pixel takes the depth (:class:`_Best`) where its cost is
+    lower than every earlier evaluated depth's.  With ``stride`` 1 every depth
+    is evaluated everywhere."""
+    height, width = fit.g.shape
     count = qs.shape[0]
-    half = window // 2
-    err = np.full((height, width), np.float32(tau), np.float32)
-    rendered = np.full((height, width), np.nan, np.float32)
-    across = np.zeros((height, width), np.float64)
-    index = np.full((height, width), -1, np.int64)  # best coarse depth per active pixel
-    want = np.zeros((height, width), np.uint8)
-    maps = _pose_maps(poses6, focal, cx, cy)
+    scratch = _Scratch(np.zeros((height, width), np.uint8), np.full((height, width), np.float32(fit.tau), np.float32),
+                       np.full((height, width), np.nan, np.float32), np.zeros((height, width), np.float64))
+    index = best.index  # best coarse depth per active pixel
     for k in range(count):
         if k % stride == 0 or k == count - 1:  # lo, hi unused in the coarse pass
-            _one_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, qs[k], k, render_mask, active,
-                       index, index, g, tau, half, -1, want, err, rendered, across, best, chosen, depth, index)
+            _one_depth(scene, fit, qs[k], k, index, index, -1, scratch, best)
     if stride <= 1:
         return
-    lo, hi = _window_range(index, active, half)
+    lo, hi = _window_range(index, fit.active, fit.half)
     for k in range(count):
         if not (k % stride == 0 or k == count - 1):
-            _one_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, qs[k], k, render_mask, active,
-                       lo, hi, g, tau, half, stride, want, err, rendered, across, best, chosen, depth, index)
+            _one_depth(scene, fit, qs[k], k, lo, hi, stride, scratch, best)
 
 
 @numba.njit(nogil=True, cache=True)
-def _one_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, q, k, render_mask, active, lo, hi, g,
-               tau, half, stride, want, err, rendered, across, best, chosen, depth, index):
+def _one_depth(scene, fit, q, k, lo, hi, stride, scratch, best):
     """Depth ``k`` (inverse depth ``q``) of :func:`_sweep`.  ``stride`` -1: the
-    coarse pass (every pixel of ``render_mask``; ``index`` records each active
-    pixel's best coarse depth); else only pixels whose window holds an active
-    pixel with a best coarse depth within ``stride`` of ``k`` (``lo``, ``hi``:
-    the window's range of them) are rendered, and only such active pixels are
-    evaluated."""
+    coarse pass (every pixel of ``fit.render_mask``; ``best.index`` records
+    each active pixel's best coarse depth); else only pixels whose window
+    holds an active pixel with a best coarse depth within ``stride`` of ``k``
+    (``lo``, ``hi``: the window's range of them) are rendered, and only such
+    active pixels are evaluated."""
+    want, err, rendered, across = scratch
+    tau, half, g = fit.tau, fit.half, fit.g
     height, width = err.shape
     area = float((2 * half + 1) * (2 * half + 1))
 
     for i in range(height):
         for j in range(width):
-            want[i, j] = render_mask[i, j] != 0 and (stride < 0 or (lo[i, j] - stride < k < hi[i, j] + stride))
+            want[i, j] = fit.render_mask[i, j] != 0 and (stride < 0 or (lo[i, j] - stride < k < hi[i, j] + stride))
             if want[i, j]:
                 rendered[i, j] = np.nan
-    _render_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, q, want, rendered)
+    _render_depth(scene, q, want, rendered, 0, 0)
     for i in range(height):
         for j in range(width):
             if want[i, j] != 0:
@@ -357,20 +418,20 @@ def _one_depth(ref, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, q, k, 
                 across[i, j] = acc
     for i in range(height):
         for j in range(width):
-            if active[i, j] == 0 or math.isnan(rendered[i, j]):
+            if fit.active[i, j] == 0 or math.isnan(rendered[i, j]):
                 continue
-            if stride > 0 and not (index[i, j] >= 0 and abs(k - index[i, j]) < stride):
+            if stride > 0 and not (best.index[i, j] >= 0 and abs(k - best.index[i, j]) < stride):
                 continue
             acc = 0.0
             for d in range(-half, half + 1):
                 acc += across[min(max(i + d, 0), height - 1), j]
             cost = acc / area
-            if cost < best[i, j]:
-                best[i, j] = cost
-                chosen[i, j] = rendered[i, j]
-                depth[i, j] = q
+            if cost < best.best[i, j]:
+                best.best[i, j] = cost
+                best.chosen[i, j] = rendered[i, j]
+                best.depth[i, j] = q
                 if stride < 0:
-                    index[i, j] = k
+                    best.index[i, j] = k
 
 
 @numba.njit(nogil=True, cache=True)

@@ -33,7 +33,7 @@ import numba
 import numpy as np
 
 from .._camera import full_poses
-from ._depthmap import _geometry, _sample, depth_map
+from ._depthmap import _geometry, _RowPoses, _sample, depth_map
 from ._layers import depth_layers
 from .._oracle import _huber_loss, optimal_chi
 from ..registration._rowproblem import _centroid, _Solver
@@ -166,7 +166,7 @@ def _resolve_rows(registration, reference, g, inverse_depth, exclude, rows, came
     gain = np.ones(g.shape[1]) if registration.column_gain is None else np.asarray(registration.column_gain, np.float64)
     weights = dict(registration.row_weights)
     registered, chi, valid = registration.registered.copy(), registration.chi.copy(), registration.valid.copy()
-    axes = space.axes
+    axes, solved = space.axes, []
     for i in rows:
         if i not in weights or not len(weights[i][1]):
             continue
@@ -186,17 +186,20 @@ def _resolve_rows(registration, reference, g, inverse_depth, exclude, rows, came
         _solve_huber_nn(a, g_row, w, float(lambda_w), 0.5 * float(lambda_chi), float(params.tol),
                         int(params.max_outer), int(params.max_add))
         keep = w > 0
-        if not keep.any():
-            continue
-        plane = np.zeros(g.shape[1], np.float32)
-        ok1 = _build_row_depth(ref, poses6[keep], np.ones(g.shape[1]), focal, cx, cy, i + dy, dx,
-                               np.zeros((int(keep.sum()), g.shape[1]), np.float32), plane, w[keep])
-        row_ok = (ok1 == 1) & registration.valid[i]
-        weights[i] = (grid[keep], w[keep])
-        registered[i] = np.where(row_ok, plane * gain, np.nan)
+        if keep.any():
+            weights[i] = (grid[keep], w[keep])
+            solved.append(i)
+    moved = dataclasses.replace(registration, row_weights=weights)
+    # the plane (inverse depth 1) of the re-solved rows, by the depth steps' one renderer
+    mask = np.zeros(g.shape, bool)
+    mask[solved] = True
+    plane = _RowPoses.of(moved, g.shape[0]).render(ref, (focal, cx, cy, dy, dx), 1.0, mask)
+    for i in solved:
+        row_ok = np.isfinite(plane[i]) & registration.valid[i]
+        registered[i] = np.where(row_ok, plane[i], np.nan)
         chi[i] = np.where(row_ok, optimal_chi(g[i] - registered[i], lambda_chi=lambda_chi), 0.0)
         valid[i] = row_ok
-    return dataclasses.replace(registration, registered=registered, chi=chi, valid=valid, row_weights=weights)
+    return dataclasses.replace(moved, registered=registered, chi=chi, valid=valid)
 
 
 def _grid(space, poses, w):
@@ -221,12 +224,11 @@ def _warm_start(space, index, poses, w):
 
 
 @numba.njit(nogil=True, cache=True)
-def _build_row_depth(ref, poses6, q, focal, cx, cy, y, dx, out, plane=None, w=None):
+def _build_row_depth(ref, poses6, q, focal, cx, cy, y, dx, out):
     """``out`` (K, W): column ``k`` of ``F_i`` at every pixel ``j`` of capture
     row ``y`` (reference frame) sampled at pose ``k`` with translations and
     scale times ``q[j]``; 0 where a pose leaves valid data.  Returns uint8 (W,),
-    1 where every pose sampled valid data.  With ``plane`` and ``w``, also
-    ``plane = w . out``."""
+    1 where every pose sampled valid data."""
     k_count, width = out.shape
     valid = np.ones(width, np.uint8)
     for k in range(k_count):
@@ -240,10 +242,4 @@ def _build_row_depth(ref, poses6, q, focal, cx, cy, y, dx, out, plane=None, w=No
                 out[k, j] = 0.0
             else:
                 out[k, j] = v
-    if plane is not None:
-        for j in range(width):
-            acc = 0.0
-            for k in range(k_count):
-                acc += w[k] * out[k, j]
-            plane[j] = acc
     return valid

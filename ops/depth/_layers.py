@@ -35,8 +35,8 @@ from scipy import ndimage
 
 from .._camera import full_poses, pose_homographies
 from .._oracle import optimal_chi
-from .._warp import _build_row
 from ..changes._changes import large_components
+from ._depthmap import _geometry, _RowPoses, render_at
 
 __all__ = ["LayerParams", "LayerResult", "depth_layers"]
 
@@ -140,43 +140,23 @@ def depth_layers(registration, reference, distorted, *, camera, threshold, refer
 
 
 class _Frame:
-    """What re-rendering a window at a depth needs: the reference window in its
-    frame, the rows' weights and slow part, the camera."""
+    """What re-rendering a window at a depth needs: the capture and reference
+    windows, the registration, the camera, and the rows' weighted poses ready
+    for the depth steps' one renderer (:func:`ops.depth._depthmap.render_at`)."""
 
     def __init__(self, registration, reference, distorted, camera, reference_origin_yx, distorted_origin_yx):
         self.reg, self.ref, self.dist = registration, np.asarray(reference, np.float32), distorted
-        self.focal = float(camera.focal)
-        self.cx = camera.center_xy[0] - reference_origin_yx[1]
-        self.cy = camera.center_xy[1] - reference_origin_yx[0]
         self.dy = int(distorted_origin_yx[0] - reference_origin_yx[0])
         self.dx = int(distorted_origin_yx[1] - reference_origin_yx[1])
-        some = next((p for p, _ in registration.row_weights.values()), np.zeros((0, 1)))
-        self.inplane = registration.axes[:some.shape[1]]  # the rows' own axes; the slow ones follow
         self.camera, self.origin = camera, reference_origin_yx
+        self.scene = _RowPoses.of(registration, distorted.shape[0]).scene(
+            self.ref, _geometry(camera, reference_origin_yx, distorted_origin_yx))
 
-    def poses6(self, row, poses, depth):
-        """Full poses (n, 6) of a row's weighted poses at ``depth``."""
-        p6 = full_poses(poses, self.inplane)
-        p6[:, :3] /= depth
-        if self.reg.slow is not None:
-            p6 = p6 + self.reg.slow.pose6(row)
-        return p6
-
-    def render(self, rows, cols, depth):
-        """The registered window ``rows`` x ``cols`` re-rendered at ``depth``:
-        float32, NaN where a row has no weights or a pose leaves the reference."""
-        out = np.full((rows.stop - rows.start, cols.stop - cols.start), np.nan, np.float32)
-        gain = 1.0 if self.reg.column_gain is None else self.reg.column_gain[cols]
-        for q, row in enumerate(range(rows.start, rows.stop)):
-            weights = self.reg.row_weights.get(row)
-            if weights is None or not len(weights[1]):
-                continue
-            poses, w = weights
-            buf = np.empty((len(w), out.shape[1]), np.float32)
-            valid = _build_row(self.ref, float(row + self.dy), float(cols.start + self.dx),
-                               self.poses6(row, poses, depth), self.focal, self.cx, self.cy, buf)
-            out[q] = np.where(valid != 0, (w @ buf) * gain, np.nan)
-        return out
+    def render(self, rows, cols, q):
+        """The registered window ``rows`` x ``cols`` re-rendered at inverse depth
+        ``q``: float32, NaN where a row has no weights or a pose leaves the reference."""
+        shape = (rows.stop - rows.start, cols.stop - cols.start)
+        return render_at(self.scene, q, np.ones(shape, bool), (rows.start, cols.start))
 
 
 def _test_component(frame, box, component, depths, threshold, min_area):
@@ -188,7 +168,7 @@ def _test_component(frame, box, component, depths, threshold, min_area):
 
     def explain(depth):
         if depth not in tried:
-            rendered = frame.render(box[0], box[1], depth)
+            rendered = frame.render(box[0], box[1], 1.0 / depth)  # depths swept, inverse depths rendered
             explained = component & (np.abs(g - rendered) < threshold)
             tried[depth] = (int(explained.sum()), depth, rendered, explained)
         return tried[depth]
@@ -212,7 +192,8 @@ def _test_component(frame, box, component, depths, threshold, min_area):
     seen = np.abs(g - rendered) < threshold
     lab, _ = ndimage.label(seen, structure=np.ones((3, 3)))
     seen = np.isin(lab, np.unique(lab[decisive & seen])) & (lab > 0)
-    disoccluded = _disoccluded(frame, box, component & ~explained & ~edge, seen | explained, decisive, depth) | edge
+    disoccluded = _disoccluded(frame, box, component & ~explained & ~edge, seen | explained, decisive,
+                               1.0 / depth) | edge
     if count + disoccluded.sum() < MIN_COVERED * pixels:
         return None
     # what is left of the layer in pieces smaller than a change is its remnant
@@ -231,9 +212,9 @@ def _edge(pixels, explained, rendered, g, threshold):
     return pixels & near & (g >= lo - threshold) & (g <= hi + threshold)
 
 
-def _disoccluded(frame, box, pixels, explained, decisive, depth):
+def _disoccluded(frame, box, pixels, explained, decisive, q):
     """Which of ``pixels`` (window box) see, on the ground, a point that the
-    layer at ``depth`` covered in the reference, and do not see the layer
+    layer at inverse depth ``q`` covered in the reference, and do not see the layer
     itself (carried at ``depth``, they fall off it): the ground the layer hid.
     The layer's footprint is where its ``explained`` pixels come from, holes
     filled (objects on it included), within the convex hull of where its
@@ -241,11 +222,11 @@ def _disoccluded(frame, box, pixels, explained, decisive, depth):
     beside a layer is explained at its depth too and would widen it."""
     if not pixels.any() or not decisive.any():
         return np.zeros_like(pixels)
-    footprint = _filled(frame, _to_reference(frame, box, explained, depth)) & \
-        _hull(frame, _to_reference(frame, box, decisive, depth))
+    footprint = _filled(frame, _to_reference(frame, box, explained, q)) & \
+        _hull(frame, _to_reference(frame, box, decisive, q))
     near = cv2.dilate(footprint.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     hit = _lookup(near, _to_reference(frame, box, pixels, 1.0)) & \
-        ~_lookup(footprint, _to_reference(frame, box, pixels, depth))
+        ~_lookup(footprint, _to_reference(frame, box, pixels, q))
     out = np.zeros_like(pixels)
     out[pixels] = hit
     return out
@@ -286,15 +267,15 @@ def _lookup(mask, points):
     return hit
 
 
-def _to_reference(frame, box, pixels, depth):
+def _to_reference(frame, box, pixels, q):
     """Reference-window (row, col) of the window ``pixels`` (bool in ``box``)
-    carried by each row's centroid pose at ``depth``."""
+    carried by each row's centroid pose at inverse depth ``q``."""
     rows, cols = np.nonzero(pixels)
     rows = rows + box[0].start
     cols = cols + box[1].start
     poses = frame.reg.trajectory[rows].copy()
     p6 = full_poses(poses, frame.reg.axes)
-    p6[:, :3] /= depth
+    p6[:, :3] *= q
     window_rows = rows + frame.dy
     hom = pose_homographies(p6, frame.camera, origin_yx=frame.origin, inverse=True)
     pts = hom @ np.stack([cols + frame.dx, window_rows, np.ones(len(rows))])[None].transpose(2, 1, 0)

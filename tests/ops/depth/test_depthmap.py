@@ -9,7 +9,7 @@ import pytest
 from scipy import ndimage
 
 from rsmb import ops
-from rsmb.ops.depth._depthmap import _geometry, _RowPoses, _sweep, _window_cost
+from rsmb.ops.depth._depthmap import _Best, _Fit, _geometry, _RowPoses, _sweep, _window_cost
 
 from .test_layers import EXPOSURE, SHAPE, _path  # the same scene and camera path
 
@@ -128,9 +128,9 @@ def test_the_sweep_is_each_depth_rendered_and_box_filtered(raised):
         want_best[better], want_chosen[better], want_depth[better] = cost[better], rendered[better], q
     best = np.full(g.shape, np.inf, np.float32)
     chosen, depth = np.full(g.shape, np.nan, np.float32), np.ones(g.shape, np.float32)
-    args = (ref, rows.poses6, rows.weights, rows.offsets, rows.gain, *geometry, qs, render_mask.astype(np.uint8),
-            active.astype(np.uint8), g, tau, window)
-    _sweep(*args, 1, best, chosen, depth)
+    scene = rows.scene(ref, geometry)
+    fit = _Fit(g, render_mask.astype(np.uint8), active.astype(np.uint8), tau, window // 2)
+    _sweep(scene, fit, qs, 1, _Best(best, chosen, depth, np.full(g.shape, -1)))
     assert np.isfinite(want_best).sum() > 0.9 * active.sum() and not np.isfinite(best[~active]).any()
     np.testing.assert_allclose(best, want_best, rtol=1e-5, atol=1e-6)
     # depths whose costs tie to rounding may swap; everywhere else the same depth and value
@@ -140,7 +140,7 @@ def test_the_sweep_is_each_depth_rendered_and_box_filtered(raised):
     # coarse to fine: never below the full sweep's cost, and the same depth almost everywhere
     fine = np.full(g.shape, np.inf, np.float32)
     fine_chosen, fine_depth = np.full(g.shape, np.nan, np.float32), np.ones(g.shape, np.float32)
-    _sweep(*args, 4, fine, fine_chosen, fine_depth)
+    _sweep(scene, fit, qs, 4, _Best(fine, fine_chosen, fine_depth, np.full(g.shape, -1)))
     swept = np.isfinite(want_best)
     assert np.array_equal(np.isfinite(fine), swept)
     assert (fine[swept] >= want_best[swept] - 1e-6).all()

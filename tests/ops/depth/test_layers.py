@@ -81,3 +81,34 @@ def test_objects_on_and_against_a_block_stay_changes(seed):
     roofs = pair.parallax_mask & pair.valid
     assert mask[roofs].mean() <= 0.02  # the blocks (and the ground they hid) are no change
     assert ops.confusion(mask, pair.change_mask).precision >= 0.95
+
+
+def test_one_renderer_at_inverse_depth_is_the_row_warp_at_depth(raised):
+    """The depth steps' one renderer (inverse depth ``q`` multiplies the
+    translations) gives what the row warp of ``ops._warp`` gives with the
+    translations divided by the relative depth ``1 / q`` (how the layers were
+    rendered before): the same values to float32 rounding, NaN at the same pixels."""
+    from rsmb.ops._camera import full_poses
+    from rsmb.ops._warp import _build_row
+    from rsmb.ops.depth._layers import _Frame
+
+    pair, reg, _ = raised
+    frame = _Frame(reg, pair.reference, pair.distorted, pair.camera, (0, 0), (0, 0))
+    rows, cols = slice(100, 160), slice(37, 301)
+    inplane = reg.axes[:next(iter(reg.row_weights.values()))[0].shape[1]]
+    cx, cy = pair.camera.center_xy
+    for depth in (0.45, 0.8, 1.3):
+        want = np.full((rows.stop - rows.start, cols.stop - cols.start), np.nan, np.float32)
+        for n, row in enumerate(range(rows.start, rows.stop)):
+            poses, w = reg.row_weights[row]
+            p6 = full_poses(poses, inplane)
+            p6[:, :3] /= depth
+            buf = np.empty((len(w), want.shape[1]), np.float32)
+            valid = _build_row(np.asarray(pair.reference, np.float32), float(row), float(cols.start), p6,
+                               float(pair.camera.focal), cx, cy, buf)
+            gain = 1.0 if reg.column_gain is None else reg.column_gain[cols]
+            want[n] = np.where(valid != 0, (w @ buf) * gain, np.nan)
+        got = frame.render(rows, cols, 1.0 / depth)
+        assert np.isfinite(want).mean() > 0.9
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+        np.testing.assert_allclose(got, want, rtol=0, atol=2e-6)
