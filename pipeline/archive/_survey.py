@@ -188,7 +188,8 @@ def check_output(out_dir, *, option="-o"):
     if out.is_dir() and not _is_survey(out) and any(out.iterdir()):
         raise InputError(f"{out}: {option} is a folder of other files, not a survey's (no {LEDGER_NAME}); give a "
                          f"new or empty folder, or the folder of earlier nights")
-    tiles.check_writable(out / LEDGER_NAME)
+    if not _is_survey(out):  # an earlier night's folder is proven by taking its lock, which writes nothing new
+        tiles.check_writable(out / LEDGER_NAME)
 
 
 def _is_survey(out):

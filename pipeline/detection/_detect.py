@@ -281,8 +281,9 @@ def _store_lock(output):
     it, held for the run and removed after (:func:`rsmb.tiles.acquire_lock`).
     Another run on the same store is refused, not raced.  Folders made for
     the lock file are removed again when the run fails before it wrote."""
-    tiles.check_writable(output)
     parent, made = Path(output).parent, []
+    if not parent.is_dir():  # (an existing folder is proven by the lock file: no probe file written there)
+        tiles.check_writable(output)
     while not parent.exists():
         made.append(parent)
         parent = parent.parent

@@ -35,9 +35,9 @@ def _args(references, pattern, out, *extra):
 
 
 def _tree(root):
-    """Every path under ``root`` with its size and modification time."""
-    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns) if p.is_file() else None
-            for p in sorted(root.rglob("*"))}
+    """Every path under ``root`` (``root`` included) with its size and modification time."""
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns)
+            for p in [root, *sorted(root.rglob("*"))]}
 
 
 def _wait_for(predicate, seconds=120.0):
