@@ -22,7 +22,8 @@ there); the depth ``rho = 1`` is the ground itself and is not tried.
 The decision is per component, its consequence per pixel: of a layer's
 component, only the pixels explained at its depth, those on its edge (between
 the values the layer renders around them: blur and the capture's optics),
-the disoccluded ones and remnants smaller than a change join ``parallax``.
+the disoccluded ones and remnants (smaller than a change, or rims thinner
+than 3 px) join ``parallax``.
 The rest, a new object on the roof or touching the block, stays a change
 candidate (``kept``), judged at the layer's depth only.
 """
@@ -196,9 +197,11 @@ def _test_component(frame, box, component, depths, threshold, min_area):
                                1.0 / depth) | edge
     if count + disoccluded.sum() < MIN_COVERED * pixels:
         return None
-    # what is left of the layer in pieces smaller than a change is its remnant
+    # what is left of the layer in pieces smaller than a change, or thinner than
+    # 3 px (a rim along its edge), is its remnant
     rest = component & ~explained & ~disoccluded
-    return depth, rendered, explained, disoccluded | (rest & ~large_components(rest, min_area))
+    body = ndimage.binary_propagation(ndimage.binary_erosion(rest, np.ones((3, 3), bool)), mask=rest)
+    return depth, rendered, explained, disoccluded | (rest & ~(large_components(rest, min_area) & body))
 
 
 def _edge(pixels, explained, rendered, g, threshold):
