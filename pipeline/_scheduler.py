@@ -183,6 +183,7 @@ class Runner:
         self.client = client
         self.workers = workers
         self.pool = pool
+        self._pool_threads = None
         self.progress = progress
         self.worker_timeout = float(worker_timeout)
         # when the last worker was first seen gone: one clock for every map of
@@ -264,13 +265,54 @@ class Runner:
         token = f"{label}-{id(argument_lists):x}"  # runs sharing a pool keep their own keys
         tasks = [dask.delayed(_call, pure=False)(func, args, owner, dask_key_name=f"{token}-{n - i:08d}")
                  for i, args in enumerate(argument_lists)]
-        kw = {}
-        if self.pool is not None and self.scheduler != "synchronous":
+        kw, tracked = {}, None
+        if self.scheduler == "threads":
+            # a task that fails makes dask raise while the others still run: the
+            # caller's clean-up (removing a .partial store) must wait for them
+            tracked = kw["pool"] = _Tracked(self.pool or self._threads())
+        elif self.pool is not None and self.scheduler != "synchronous":
             kw["pool"] = self.pool
         elif self.workers and self.scheduler != "synchronous":
             kw["num_workers"] = self.workers
-        with _DaskProgress(progress) if progress is not None else contextlib.nullcontext():
-            return list(dask.compute(*tasks, scheduler=self.scheduler, **kw))
+        try:
+            with _DaskProgress(progress) if progress is not None else contextlib.nullcontext():
+                return list(dask.compute(*tasks, scheduler=self.scheduler, **kw))
+        except BaseException:
+            if tracked is not None:
+                tracked.settle()
+            raise
+
+    def _threads(self):
+        """This runner's own thread pool (dask's context-aware one), made once."""
+        if self._pool_threads is None:
+            try:
+                from dask.threaded import ContextAwareThreadPoolExecutor as Executor
+            except ImportError:  # dask before 2024.12
+                from concurrent.futures import ThreadPoolExecutor as Executor
+
+            self._pool_threads = Executor(self.workers or os.cpu_count() or 1)
+        return self._pool_threads
+
+
+class _Tracked:
+    """An executor that remembers what it was given, so that a failed map can
+    cancel the tasks not started and wait for the running ones."""
+
+    def __init__(self, pool):
+        self.pool, self.futures = pool, []
+        self._max_workers = pool._max_workers
+
+    def submit(self, *args, **kwargs):
+        future = self.pool.submit(*args, **kwargs)
+        self.futures.append(future)
+        return future
+
+    def settle(self):
+        import concurrent.futures
+
+        for future in self.futures:
+            future.cancel()
+        concurrent.futures.wait(self.futures)
 
 
 def _call(func, args, owner_pid, owned=True):

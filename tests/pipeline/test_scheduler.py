@@ -1,6 +1,7 @@
 """The task runner: results in order, tasks started in the order given, and
 process-wide settings only in worker processes."""
 
+import contextlib
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -134,3 +135,22 @@ def test_overlapping_runs_restore_the_callers_setting_when_the_last_ends(caller_
 def test_worker_processes_run_one_blas_thread():
     out = Runner("processes", workers=1).map("blas", _blas_threads, [(0,), (1,)])
     assert all(counts and set(counts.values()) == {1} for counts in out)  # numpy's OpenBLAS at least
+
+
+def _fail_or_write(path, delay):
+    if path is None:
+        raise ValueError("bad input")
+    time.sleep(delay)
+    path.write_text("written")
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_a_failed_map_returns_after_its_running_tasks(tmp_path, shared):
+    # the caller removes a failed run's store right after the error: no task of
+    # that run may still write into it then
+    with ThreadPoolExecutor(2) if shared else contextlib.nullcontext() as pool:
+        runner = Runner("threads", workers=2, pool=pool, progress=False)
+        late = tmp_path / "late.txt"
+        with pytest.raises(ValueError, match="bad input"):
+            runner.map("t", _fail_or_write, [(late, 0.5), (None, 0.0)])
+        assert late.read_text() == "written"
