@@ -103,10 +103,21 @@ def ingest_core(read, tile, array, offset=(0, 0)):
     return _stats(data)
 
 
-def check_stats(stats, path):
-    """Raise :class:`ops.InputError` for an image without valid or varying pixels."""
+#: A capture with fewer valid pixels than this share of its own has too
+#: little data to register (a reference may cover less: it is read under the
+#: capture's footprint).
+MIN_VALID_SHARE = 0.01
+
+
+def check_stats(stats, path, pixels=None):
+    """Raise :class:`ops.InputError` for an image without valid or varying
+    pixels, or (given its ``pixels``) with fewer valid ones than
+    :data:`MIN_VALID_SHARE` of them."""
     if stats.count == 0:
-        raise InputError(f"{path}: has no valid pixel (all nodata or transparent)")
+        raise InputError(f"{path}: has no valid pixel (all nodata, NaN or transparent)")
+    if pixels is not None and stats.count < MIN_VALID_SHARE * pixels:
+        raise InputError(f"{path}: has too little valid data ({stats.count} valid pixels of {pixels}; "
+                         f"at least {MIN_VALID_SHARE:.0%} needed)")
     if stats.low == stats.high:
         raise InputError(f"{path}: is constant (every valid pixel equals {stats.low:g})")
 

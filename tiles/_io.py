@@ -184,7 +184,7 @@ def _header(source):
 def _check_content(data: np.ndarray, valid: np.ndarray, *, name: str) -> None:
     """No valid pixel / constant image checks on a whole image."""
     if not valid.any():
-        raise InputError(f"{name}: has no valid pixel (all nodata or transparent)")
+        raise InputError(f"{name}: has no valid pixel (all nodata, NaN or transparent)")
     values = data[valid]
     first = float(values[0])
     if bool((values == first).all()):

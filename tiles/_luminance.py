@@ -149,7 +149,8 @@ def bands_to_luminance(
     data : ndarray, shape (H, W), float32
         Luminance, 0 where invalid (see :func:`_luminance`).
     valid : ndarray, shape (H, W), bool
-        False where alpha is 0 or every colour band is nodata.
+        False where alpha is 0, every colour band is nodata, or a float band
+        is NaN.
     """
     colour, alpha = _split_alpha(bands, alpha_index, name=name)
     colour_nodata = [v for i, v in enumerate(nodatavals) if i != alpha_index]
@@ -163,6 +164,9 @@ def bands_to_luminance(
         for band, value in zip(colour, colour_nodata):
             all_nodata &= np.isnan(band) if math.isnan(value) else band == value
         invalid |= all_nodata
+    for band in colour:  # NaN in a float band is no-data, with or without a nodata tag
+        if band.dtype.kind == "f":
+            invalid |= np.isnan(band)
     return _luminance(colour, invalid, name=name)
 
 

@@ -104,7 +104,8 @@ class _Propagation:
         out, height = self.out, len(informative)
         c_start = self.solve_row(start, center, None)
         out.trajectory[start] = center if c_start is None else c_start
-        out.row_state[start] = 1
+        fitted = c_start is not None and out.valid[start].any() and self.solver.last_converged
+        out.row_state[start] = 1 if fitted else 3  # the rows still start from it; finish() solves it again
         if self.solver.fast_rows and len(self.solver.problem.other) <= 1:
             for direction in (-1, 1):
                 rows = np.arange(start + direction, height if direction > 0 else -1, direction)
@@ -257,10 +258,13 @@ class _Propagation:
 
     def finish(self):
         """Interpolate the centroids of rows not solved on their own, then solve
-        them around the interpolated path."""
+        them around the interpolated path: a failed row whose solve there
+        meets the optimality conditions is solved (its own centroid), any row
+        whose does not is failed (state 3)."""
         out = self.out
         good = out.row_state == 1
         if not good.any():
+            out.row_state[out.row_state != 2] = 3
             return
         rows = np.arange(len(good))
         for d in range(out.trajectory.shape[1]):
@@ -268,4 +272,8 @@ class _Propagation:
         solved = np.nonzero(good)[0]
         for i in np.nonzero(~good)[0]:
             nearest = int(solved[np.argmin(np.abs(solved - i))])
-            self.solve_row(i, out.trajectory[i], nearest)
+            c = self.solve_row(i, out.trajectory[i], nearest)
+            if c is None or not out.valid[i].any() or not self.solver.last_converged:
+                out.row_state[i] = 3
+            elif out.row_state[i] == 3:
+                out.trajectory[i], out.row_state[i] = c, 1

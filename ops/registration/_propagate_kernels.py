@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
-from ._rowsolve import _solve_huber_nn, _synthesize
+from ._rowsolve import SOLVED, _solve_huber_nn, _synthesize
 from .._warp import _gather_row
 
 __all__ = []
@@ -189,8 +189,9 @@ def _row_step(source, row, settings, w, a):
     gather ``F_i`` from ``source`` into the work array ``a`` (K, N), solve
     eq. 13 warm-started from ``w`` (in place), and write the registered row,
     the change term and the validity into ``row`` (NaN / 0 / False where
-    invalid).  Returns (objective, valid pixel count, whether the solve
-    converged); the objective is inf when too few pixels are valid to solve.
+    invalid).  Returns (objective, valid pixel count, whether the solve met
+    its optimality conditions, :data:`ops.registration._rowsolve.SOLVED`);
+    the objective is inf when too few pixels are valid to solve.
     """
     k_count, n = a.shape
     delta = settings.delta
@@ -218,8 +219,8 @@ def _row_step(source, row, settings, w, a):
             reg_out[j] = np.nan
             chi_out[j] = 0.0
         return np.inf, count, True
-    obj, iterations, _ = _solve_huber_nn(a, g, w, settings.lam, delta, settings.tol, settings.max_outer,
-                                         settings.max_add)
+    obj, _, _, status = _solve_huber_nn(a, g, w, settings.lam, delta, settings.tol, settings.max_outer,
+                                        settings.max_add)
     reg = np.empty(n)
     _synthesize(a, w, reg)
     for j in range(n):
@@ -235,7 +236,7 @@ def _row_step(source, row, settings, w, a):
         else:
             reg_out[j] = np.nan
             chi_out[j] = 0.0
-    return obj, count, iterations < settings.max_outer
+    return obj, count, status == SOLVED
 
 
 @numba.njit(**_SUMS)
@@ -348,6 +349,14 @@ def _propagate_rows(ctx, rows, neighbour, a, trust, anchor):
         out.row_gain[i] = total
         if total <= 0.0 or count <= 0:  # nothing fitted, or unconverged: failed
             out.row_state[i] = 3
+            if total > 0.0 and count < 0:
+                # its fit, though not certified, still centres the next row's
+                # grid better than a row further back (that row is checked
+                # on its own); the path and its trust are not moved
+                for d in range(dims):
+                    prev.centroid[d] = c_own[d]
+                prev.center[:] = center
+                prev.weights[:] = w
             continue
         if trust[2 * dims + 1] == 0.0 and _jumps(c_own, i, lattice.px_per_unit, trust, predicted):
             anchor[0] = c_own

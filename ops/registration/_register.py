@@ -53,9 +53,11 @@ class Registration:
     column_gain : ndarray, shape (W,), or None
         The gain along the rows folded into ``registered`` (None: none).
     row_state : ndarray, shape (H,), uint8
-        1 solved, 2 homogeneous (centroid interpolated), 3 failed (no fit, or
-        the solve stopped at ``params.max_outer`` iterations before
-        converging; centroid interpolated).
+        1 solved, 2 homogeneous (centroid interpolated), 3 failed: no solve
+        of the row met the optimality conditions (KKT to ``params.tol``,
+        re-solved once with more iterations) or too few of its pixels were
+        valid; its centroid is interpolated and its pixels carry no evidence
+        (not valid, ``registered`` NaN, ``chi`` 0).
     axes : tuple of str
     timings : dict
         CPU-seconds of the calling thread per stage (``<stage>_s``: ``slow``
@@ -94,7 +96,7 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
         Reference window (may be larger than the distorted one: a halo); NaN
         marks nodata, as ``reference_valid`` False does.
     distorted : ndarray, shape (H, W), float32 in [0, 1]
-        Captured window.
+        Captured window; NaN marks nodata, as ``distorted_valid`` False does.
     camera : Camera, optional
         Intrinsics of the *whole* image, default that of ``distorted``'s shape.
     params : RegistrationParams, optional
@@ -124,7 +126,10 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
     if reference_valid is not None:
         ref[~np.asarray(reference_valid, bool)] = np.nan
     dist = np.asarray(distorted, dtype=np.float32)
-    dvalid = np.ones(dist.shape, bool) if distorted_valid is None else np.asarray(distorted_valid, bool)
+    dvalid = np.isfinite(dist)  # NaN: no-data, as False in distorted_valid
+    if distorted_valid is not None:
+        dvalid &= np.asarray(distorted_valid, bool)
+    dist = np.where(dvalid, dist, np.float32(0.0))
     timings = {"slow_s": 0.0, "start_s": 0.0, "rows_s": 0.0, "reanchor_s": 0.0, "gain_slope_s": 0.0}
     clock = StageClock(timings)
     if prior is not None:
@@ -175,6 +180,7 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
     if factor is not None:
         with clock.stage("gain_slope"):
             _fold_gain(out, dist, factor, delta)
+    out.no_evidence_where_failed()
     trajectory = np.concatenate([out.trajectory, _slow_columns(slow, params.slow_axes, dist.shape[0])], axis=1)
     return Registration(out.registered, out.chi, out.valid, trajectory, out.row_gain, out.row_state,
                         params.trajectory_axes, timings, out.weights, factor, slow)
@@ -227,6 +233,17 @@ class _Outputs:
         self.row_state = np.zeros(height, dtype=np.uint8)
         self.weights = {}  # row -> (poses, weights) of its final solve, nonzero weights only
 
+    def no_evidence_where_failed(self):
+        """Rows in state 3 (no solution that meets the optimality conditions)
+        carry no evidence: not valid, registered NaN, no change term, no
+        weights to render."""
+        failed = self.row_state == 3
+        self.valid[failed] = False
+        self.registered[failed] = np.nan
+        self.chi[failed] = 0.0
+        for i in np.nonzero(failed)[0]:
+            self.weights.pop(int(i), None)
+
     def keep_weights(self, row, poses, w):
         keep = w > 0
         self.weights[row] = (poses[keep], w[keep])
@@ -277,7 +294,7 @@ def _register_global(solver, candidates, informative, out):
         out.store(i, w, a, valid, solver.problem.dist[i].astype(np.float64), solver.delta)
         out.keep_weights(i, poses, w)
         out.trajectory[i] = c if c is not None else center
-        out.row_state[i] = (1 if converged else 3) if informative[i] else 2
+        out.row_state[i] = 3 if not (converged and valid.any()) else (1 if informative[i] else 2)
 
 
 def _register_prior(solver, prior, informative, out):
@@ -293,7 +310,8 @@ def _register_prior(solver, prior, informative, out):
         out.store(i, w, a, valid, solver.problem.dist[i].astype(np.float64), solver.delta)
         out.keep_weights(i, poses, w)
         c = _centroid(poses, w)
-        good = informative[i] and c is not None and valid.any() and solver.last_converged
+        fitted = c is not None and valid.any() and solver.last_converged
+        good = informative[i] and fitted
         out.trajectory[i] = c if good else prior[i]
-        out.row_state[i] = 1 if good else (2 if not informative[i] else 3)
+        out.row_state[i] = 1 if good else (2 if fitted else 3)
         previous = (space.snap(prior[i]), w)

@@ -8,7 +8,7 @@ from .._camera import full_poses
 from .._oracle import solve_row_exact
 from .._timing import UNTIMED
 from ._propagate_kernels import _Settings
-from ._rowsolve import _solve_huber_nn
+from ._rowsolve import SOLVED, _solve_huber_nn
 from .._warp import _build_row, _gather_row, _warp_into
 
 __all__ = []
@@ -205,7 +205,7 @@ class _Solver:
         self.clock = clock  # CPU-seconds per stage (ops._timing.StageClock)
         self.delta = 0.5 * params.lambda_chi
         self.last_cost = np.inf
-        self.last_converged = True  # the last solve met the KKT conditions before the iteration limit
+        self.last_converged = True  # the last solve met its optimality conditions (ops.registration._rowsolve.SOLVED)
 
     @property
     def fast_rows(self):
@@ -237,9 +237,9 @@ class _Solver:
             w, objective = np.maximum(solution.w, 0.0), solution.objective
         else:
             w = np.zeros(len(poses)) if w0 is None else w0.copy()
-            objective, iterations, _ = _solve_huber_nn(a, g, w, self.params.lambda_w, self.delta, self.params.tol,
-                                                       self.params.max_outer, self.params.max_add)
-            self.last_converged = iterations < self.params.max_outer
+            objective, _, _, status = _solve_huber_nn(a, g, w, self.params.lambda_w, self.delta, self.params.tol,
+                                                      self.params.max_outer, self.params.max_add)
+            self.last_converged = status == SOLVED
         self.last_cost = objective / valid.sum()  # eq. 13 per valid pixel, comparable across grids
         return index, poses, w, a, valid
 

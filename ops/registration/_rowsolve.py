@@ -35,6 +35,14 @@ TOL, MAX_OUTER, MAX_ADD = 1e-6, 100, 8
 
 __all__ = []
 
+#: Most steps of iterative refinement of a Newton system (:func:`_cholesky_solve`).
+REFINE_STEPS = 8
+
+#: How a row solve ended (:func:`_solve_huber_nn`): the optimality conditions
+#: hold to the tolerance; no step decreases the objective any more while they
+#: do not; the iteration limit.
+SOLVED, STALLED, LIMIT = 0, 1, 2
+
 _JIT = dict(nogil=True, cache=True)
 # sums over the pixels of a row may be reassociated (vectorised); no other
 # fast-math liberty is taken (NaN tests must keep working)
@@ -79,6 +87,32 @@ def _gradient(a, r, lam, delta, out):
         out[k] = lam - acc
 
 
+@numba.njit(**_SUMS)
+def _gradient_of(a, r, lam, delta, out, idx, m):
+    """:func:`_gradient` for the poses ``idx[:m]`` only (the others untouched)."""
+    n = a.shape[1]
+    psi = np.empty(n)
+    for j in range(n):
+        psi[j] = _psi(r[j], delta)
+    for p in range(m):
+        k = idx[p]
+        acc = 0.0
+        for j in range(n):
+            acc += psi[j] * a[k, j]
+        out[k] = lam - acc
+
+
+@numba.njit(**_JIT)
+def _violation(grad, w, seen, full):
+    """Largest KKT violation over every pose (``full``) or those ``seen``."""
+    viol = 0.0
+    for k in range(grad.shape[0]):
+        if full or seen[k]:
+            v = abs(grad[k]) if w[k] > 0.0 else -grad[k]
+            viol = max(viol, v)
+    return viol
+
+
 @numba.njit(**_JIT)
 def _triangular_solve(lmat, rhs, m):
     """Solve L L' z = rhs."""
@@ -100,8 +134,10 @@ def _triangular_solve(lmat, rhs, m):
 def _cholesky_solve(h, b, idx, m):
     """Solve h[idx, idx] z = b[idx] (first m entries of idx) by Cholesky with a
     tiny relative ridge (the Gram matrices of neighbouring poses are nearly
-    singular) and one step of iterative refinement against the unridged
-    matrix, which removes the ridge's bias; returns z (m,)."""
+    singular) and steps of iterative refinement against the unridged matrix,
+    which remove the ridge's bias (several when an offset common to every
+    pose, such as intensities far from 0, makes the ridge large against the
+    small eigenvalues); returns z (m,)."""
     lmat = np.zeros((m, m))
     scale = 0.0
     for p in range(m):
@@ -121,14 +157,20 @@ def _cholesky_solve(h, b, idx, m):
     for p in range(m):
         rhs[p] = b[idx[p]]
     z = _triangular_solve(lmat, rhs, m)
-    for p in range(m):
-        acc = b[idx[p]]
-        for q in range(m):
-            acc -= h[idx[p], idx[q]] * z[q]
-        rhs[p] = acc
-    dz = _triangular_solve(lmat, rhs, m)
-    for p in range(m):
-        z[p] += dz[p]
+    for _ in range(REFINE_STEPS):
+        for p in range(m):
+            acc = b[idx[p]]
+            for q in range(m):
+                acc -= h[idx[p], idx[q]] * z[q]
+            rhs[p] = acc
+        dz = _triangular_solve(lmat, rhs, m)
+        change, size = 0.0, 0.0
+        for p in range(m):
+            z[p] += dz[p]
+            change = max(change, abs(dz[p]))
+            size = max(size, abs(z[p]))
+        if change <= 1e-13 * size:
+            break
     return z
 
 
@@ -226,14 +268,20 @@ def _line_search(r, e, slope_w, delta):
 
 
 @numba.njit(**_SUMS)
-def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
-    """Minimise sum rho(g - a' w) + lam sum w over w >= 0 (in place).
+def _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=True):
+    """The active-set Newton iterations of :func:`_solve_huber_nn` from ``w``
+    (in place).  Returns (objective, outer iterations, how they ended:
+    :data:`SOLVED` the KKT conditions hold to ``tol_rel``, :data:`STALLED` no
+    step decreases the objective any more, :data:`LIMIT` ``max_outer``
+    iterations; the KKT violation, at ``w`` when SOLVED, else at an earlier
+    iterate).
 
-    ``a`` (K, N) float32 with zero columns for invalid pixels, ``g`` (N,) with
-    zeros there.  Returns (objective, outer iterations, final KKT violation);
-    the iterations equal ``max_outer`` when the limit stopped the solve before
-    the KKT conditions held (unconverged).
-    """
+    ``restricted``: after a pass of the gradient over every pose, the
+    iterations look at the working set's poses only, until the conditions
+    hold there; then one pass over every pose confirms them or admits its
+    worst violators.  The poses that end with zero weight (most of a row's
+    neighbourhood) are then checked a few times per solve instead of at every
+    iteration.  False: every iteration passes over every pose."""
     k_count, n = a.shape
     r = np.empty(n)
     for j in range(n):
@@ -254,28 +302,51 @@ def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
     it = 0
     newton_ok = True
     obj = _objective(r, w, lam, delta)
+    full = True  # the next gradient pass covers every pose
+    seen = np.ones(k_count, dtype=np.bool_)  # poses whose gradient is current
+    idx = np.empty(k_count, dtype=np.int64)
+    m = 0
     for it in range(max_outer):
-        _gradient(a, r, lam, delta, grad)
-        viol = 0.0
-        for k in range(k_count):
-            v = abs(grad[k]) if w[k] > 0.0 else -grad[k]
-            viol = max(viol, v)
+        if full:
+            _gradient(a, r, lam, delta, grad)
+        else:
+            _gradient_of(a, r, lam, delta, grad, idx, m)
+        viol = _violation(grad, w, seen, full)
         if viol <= tol_rel * max(obj, 1e-30):
-            return obj, it, viol
-        # working set: support plus the worst violators
+            if full:
+                return obj, it, SOLVED, viol
+            # optimal on the working set: one pass over every pose confirms it
+            full = True
+            _gradient(a, r, lam, delta, grad)
+            viol = _violation(grad, w, seen, full)
+            if viol <= tol_rel * max(obj, 1e-30):
+                return obj, it, SOLVED, viol
+        # working set: support plus the worst violators among the poses seen
         for k in range(k_count):
             work[k] = w[k] > 0.0
         order = np.argsort(grad)
         added = 0
         for q in range(k_count):
             k = order[q]
-            if grad[k] >= 0.0 or added >= max_add:
+            if added >= max_add:
                 break
+            if grad[k] >= 0.0 and (full or seen[k]):
+                break
+            if not (full or seen[k]):
+                continue
             if not work[k]:
                 work[k] = True
                 added += 1
-        idx = np.nonzero(work)[0]
-        m = idx.shape[0]
+        m = 0
+        for k in range(k_count):
+            if work[k]:
+                idx[m] = k
+                m += 1
+        checked = full  # this working set was chosen after a pass over every pose
+        if restricted:
+            full = False
+            for k in range(k_count):
+                seen[k] = work[k]
         # quadratic model of the current partition
         # Newton model of the partition once it is stable; before that the
         # half-quadratic majoriser (outlier curvature delta/|r|), which is
@@ -339,7 +410,13 @@ def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
                     e[j] += d * ap[j]
         t = _line_search(r, e, slope, delta)
         if t <= 0.0:
-            return obj, it, viol
+            if newton:  # the partition's Newton model misled: the majoriser's step descends
+                newton_ok = False
+                continue
+            if not checked:  # stuck on the working set: look at every pose first
+                full = True
+                continue
+            return obj, it, STALLED, viol
         w_old[:] = w
         r_old[:] = r
         for p in range(m):
@@ -356,16 +433,79 @@ def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
             w[:] = w_old
             r[:] = r_old
             if not newton:
-                return obj, it, viol
+                if not checked:
+                    full = True
+                    continue
+                return obj, it, STALLED, viol
             newton_ok = False
             continue
         newton_ok = True
         if obj - new_obj <= 1e-14 * obj:
             # no progress left: the remaining KKT residual is rounding (the
-            # Cholesky ridge), not a better point
-            return new_obj, it, viol
+            # Cholesky ridge), not a better point, once every pose was seen
+            if not checked:
+                obj = new_obj
+                full = True
+                continue
+            return new_obj, it, STALLED, viol
         obj = new_obj
-    return obj, max_outer, viol  # the iteration limit, unconverged
+    return obj, max_outer, LIMIT, viol
+
+
+@numba.njit(**_SUMS)
+def _kkt(a, g, w, lam, delta):
+    """At ``w``: (objective, KKT violation, bound on the objective's excess
+    over the optimum).  The violation is the largest ``|grad_k|`` over the
+    support and ``-grad_k`` off it; the bound is convexity's
+    ``grad . (w - w*) <= grad . w + max(-grad)+ sum(w*)`` with
+    ``lam sum(w*) <= objective`` (inf when ``lam`` is 0)."""
+    k_count, n = a.shape
+    r = np.empty(n)
+    for j in range(n):
+        r[j] = g[j]
+    for k in range(k_count):
+        if w[k] > 0.0:
+            for j in range(n):
+                r[j] -= w[k] * a[k, j]
+    obj = _objective(r, w, lam, delta)
+    grad = np.empty(k_count)
+    _gradient(a, r, lam, delta, grad)
+    viol, along, most = 0.0, 0.0, 0.0
+    for k in range(k_count):
+        if w[k] > 0.0:
+            viol = max(viol, abs(grad[k]))
+            along += grad[k] * w[k]
+        most = max(most, -grad[k])
+    viol = max(viol, most)
+    gap = along + most * obj / lam if lam > 0.0 else (along if most <= 0.0 else np.inf)
+    return obj, viol, max(gap, 0.0)
+
+
+@numba.njit(**_SUMS)
+def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
+    """Minimise sum rho(g - a' w) + lam sum w over w >= 0 (in place).
+
+    ``a`` (K, N) float32 with zero columns for invalid pixels, ``g`` (N,) with
+    zeros there.  A solve that ends short of the optimality conditions is
+    solved again from where it stopped with four times the iterations and every
+    violating pose admitted at once.  Returns (objective, outer iterations,
+    final KKT violation, status): :data:`SOLVED` when the KKT violation is at
+    most ``tol_rel`` times the objective or the objective provably within
+    ``tol_rel`` of the optimum (:func:`_kkt`), else :data:`LIMIT` or
+    :data:`STALLED` by how the last attempt ended.
+    """
+    obj, it, how, viol = _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add)
+    if how == SOLVED:
+        return obj, it, viol, SOLVED
+    obj, more, how, viol = _huber_nn_iterate(a, g, w, lam, delta, tol_rel, 4 * max_outer, a.shape[0])
+    it += more
+    if how == SOLVED:
+        return obj, it, viol, SOLVED
+    obj, viol, gap = _kkt(a, g, w, lam, delta)
+    bound = tol_rel * max(obj, 1e-30)
+    if viol <= bound or gap <= bound:
+        return obj, it, viol, SOLVED
+    return obj, it, viol, how
 
 
 @numba.njit(**_SUMS)
@@ -409,6 +549,6 @@ def solve_row_fast(F, g, *, lambda_w, lambda_chi, w0=None, tol=TOL, max_outer=MA
     g64 = np.asarray(g, dtype=np.float64)
     w = np.zeros(a.shape[0]) if w0 is None else np.maximum(np.asarray(w0, dtype=np.float64), 0.0).copy()
     delta = 0.5 * float(lambda_chi)
-    obj, _, _ = _solve_huber_nn(a, g64, w, float(lambda_w), delta, float(tol), int(max_outer), int(max_add))
+    obj, _, _, _ = _solve_huber_nn(a, g64, w, float(lambda_w), delta, float(tol), int(max_outer), int(max_add))
     chi = optimal_chi(g64 - a.T.astype(np.float64) @ w, lambda_chi=lambda_chi)
     return w, chi, float(obj)

@@ -84,7 +84,7 @@ def _ingest(runner, group, run, plan, timings):
         n = len(plan.blocks)
         names = (", ".join(r.path for r in plan.references), plan.distorted.path)
         capture_stats, reference_stats = sum(stats[1:n], stats[0]), sum(stats[n + 1:], stats[n])
-        tiles.check_stats(capture_stats, names[1])
+        tiles.check_stats(capture_stats, names[1], pixels=plan.shape[0] * plan.shape[1])
         tiles.check_stats(reference_stats, names[0])
         scale = ops.intensity_scale(reference_stats, capture_stats, names=names)
         group.attrs["intensity"] = tiles.jsonable(scale.as_dict())

@@ -66,10 +66,12 @@ def test_existing_output_needs_overwrite(tmp_path, small_pair_files, capsys):
 def _bad_inputs(tmp_path, ref):
     constant = tmp_path / "constant.npy"
     np.save(constant, np.full((192, 256), 0.5, np.float32))
-    nan = tmp_path / "nan.npy"
-    arr = np.random.default_rng(0).random((192, 256)).astype(np.float32)
-    arr[5, 5] = np.nan
-    np.save(nan, arr)
+    nan = tmp_path / "nan.npy"  # NaN is no-data: a capture of NaN only has no valid pixel
+    np.save(nan, np.full((192, 256), np.nan, np.float32))
+    sparse = tmp_path / "sparse.npy"  # 0.2 % of the pixels valid
+    arr = np.full((192, 256), np.nan, np.float32)
+    arr[::16, ::16] = np.random.default_rng(0).random((12, 16))
+    np.save(sparse, arr)
     small = tmp_path / "small.npy"
     np.save(small, np.random.default_rng(1).random((100, 100)).astype(np.float32))
     garbage = tmp_path / "garbage.png"
@@ -80,13 +82,14 @@ def _bad_inputs(tmp_path, ref):
         "missing": (tmp_path / "missing.png", "no such file"),
         "unreadable": (garbage, "cannot read"),
         "constant": (constant, "constant"),
-        "nan": (nan, "NaN"),
+        "nan": (nan, "no valid pixel"),
+        "sparse": (sparse, "too little valid data"),
         "size": (small, "differs from the reference"),
         "empty": (empty, "empty"),
     }
 
 
-@pytest.mark.parametrize("case", ["missing", "unreadable", "constant", "nan", "size", "empty"])
+@pytest.mark.parametrize("case", ["missing", "unreadable", "constant", "nan", "sparse", "size", "empty"])
 def test_bad_input_exits_2_with_one_line(tmp_path, small_pair_files, capsys, case):
     _, ref, _ = small_pair_files
     bad, words = _bad_inputs(tmp_path, ref)[case]
@@ -96,6 +99,22 @@ def test_bad_input_exits_2_with_one_line(tmp_path, small_pair_files, capsys, cas
     assert code == 2
     assert err.count("\n") == 1 and bad.name in err and words in err, err
     assert not store.exists() and not (tmp_path / "bad.zarr.partial").exists()
+
+
+def test_nan_in_a_float_capture_is_nodata(tmp_path, small_pair, small_pair_files):
+    """A float capture without a nodata tag may hold NaN: those pixels are
+    no-data (no evidence: NaN score, never change), the rest is detected."""
+    _, ref, _ = small_pair_files
+    capture = np.array(small_pair.distorted, np.float32)
+    capture[20:40, 50:150] = np.nan
+    holed = tmp_path / "holed.npy"
+    np.save(holed, capture)
+    store = tmp_path / "holed.zarr"
+    assert main(["-q", "detect", str(ref), str(holed), "-o", str(store)]) == 0
+    arrays, _ = read_store(store)
+    assert np.isnan(arrays["change_score"][20:40, 50:150]).all()
+    assert not arrays["change_mask"][20:40, 50:150].any()
+    assert np.isfinite(arrays["change_score"][80:, :]).mean() > 0.5
 
 
 def test_bad_parameter_exits_2(tmp_path, small_pair_files, capsys):

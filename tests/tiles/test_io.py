@@ -286,7 +286,7 @@ def _write(path, content):
     (lambda p: _write(p / "broken.tif", b"not a tiff"), "cannot read"),
     (lambda p: _save(p / "empty.npy", np.zeros((0, 5), np.float32)), "is empty"),
     (lambda p: _save(p / "flat.npy", np.full((4, 5), 7, np.uint8)), "is constant"),
-    (lambda p: _save(p / "nan.npy", np.array([[0, np.nan], [1, 0.5]])), "contains NaN"),
+    (lambda p: _save(p / "nan.npy", np.full((2, 3), np.nan)), "no valid pixel"),  # NaN: no-data
     (lambda p: _save(p / "cube.npy", np.zeros((2, 3, 4, 5))), "expected \\(H, W\\)"),
 ])
 def test_input_errors_name_file_and_problem(tmp_path, make, problem):
@@ -294,6 +294,14 @@ def test_input_errors_name_file_and_problem(tmp_path, make, problem):
     with pytest.raises(InputError, match=problem) as exc_info:
         read_image(path)
     _assert_one_line(exc_info, path)
+
+
+def test_nan_in_a_float_image_is_nodata(tmp_path):
+    """NaN in a float raster without a nodata tag is no-data (not an error)."""
+    image = np.array([[0.0, np.nan, 0.25], [1.0, 0.5, np.nan]], np.float32)
+    raster = read_image(_save(tmp_path / "holes.npy", image))
+    np.testing.assert_array_equal(raster.valid, np.isfinite(image))
+    np.testing.assert_array_equal(raster.data[raster.valid], image[np.isfinite(image)])
 
 
 def _truncated(path, keep):

@@ -12,7 +12,7 @@ import pytest
 from rsmb import ops
 from rsmb.ops import Camera, PoseSpace, full_poses, row_objective, solve_row_exact, solve_row_fast
 from rsmb.ops.registration._rowproblem import _RowProblem
-from rsmb.ops.registration._rowsolve import _solve_huber_nn
+from rsmb.ops.registration._rowsolve import LIMIT, SOLVED, STALLED, _huber_nn_iterate, _kkt, _solve_huber_nn
 from rsmb.ops._warp import _build_row, _gather_row, _remap_rows
 
 SCENE_SHAPE = (128, 384)
@@ -155,7 +155,7 @@ def test_change_lands_in_chi(solved):
 def _warm_restart(F, g, lw, lc, w):
     """Iterations and objective of the solver restarted at ``w`` (KKT tol 1e-7)."""
     w_warm = w.copy()
-    obj, iterations, _ = _solve_huber_nn(np.ascontiguousarray(F.T), g, w_warm, lw, 0.5 * lc, 1e-7, 100, 32)
+    obj, iterations, _, _ = _solve_huber_nn(np.ascontiguousarray(F.T), g, w_warm, lw, 0.5 * lc, 1e-7, 100, 32)
     return obj, iterations, w_warm
 
 
@@ -178,7 +178,7 @@ def test_solver_stops_at_its_own_optimum(solved, seed):
     Cholesky ridge leaving a KKT residual above tol * objective with x == w."""
     _, F, g, lw, lc, _, _, (w, _, obj), exact = solved[seed]
     assert obj <= exact.objective * (1 + REL)
-    _, cold_iterations, _ = _solve_huber_nn(np.ascontiguousarray(F.T), g, np.zeros_like(w), lw, 0.5 * lc,
+    _, cold_iterations, _, _ = _solve_huber_nn(np.ascontiguousarray(F.T), g, np.zeros_like(w), lw, 0.5 * lc,
                                             1e-7, 100, 32)
     _, warm_iterations, _ = _warm_restart(F, g, lw, lc, w)
     assert cold_iterations < 20
@@ -321,3 +321,52 @@ def test_gather_row_kernel_against_build_row(scenes):
         np.testing.assert_array_equal(v_g, v_b)
         assert v_g.all()
         np.testing.assert_allclose(out_g, out_b, atol=1e-5)
+
+
+def test_solved_means_the_optimality_conditions_hold(solved):
+    """Every problem solved with the defaults reports SOLVED, and that status
+    is checked at the point returned: the KKT violation, or the certified
+    bound on the objective's excess, within the tolerance of the objective;
+    the objective then lies within 1e-6 (relative) of cvxpy's."""
+    for seed, F, g, lw, lc, _, _, _, exact in solved:
+        a = np.ascontiguousarray(F.T)
+        w = np.zeros(F.shape[1])
+        obj, _, viol, status = _solve_huber_nn(a, g, w, lw, 0.5 * lc, 1e-6, 100, 8)
+        assert status == SOLVED, seed
+        value, viol_again, gap = _kkt(a, g, w, lw, 0.5 * lc)
+        assert viol == pytest.approx(viol_again, rel=1e-6, abs=1e-12) and value == pytest.approx(obj, rel=1e-12)
+        assert min(viol, gap) <= 1e-6 * obj
+        assert obj <= exact.objective * (1 + 1e-6) + 1e-12, seed
+
+
+def test_early_exits_no_longer_claim_convergence(solved):
+    """With a tolerance rounding cannot meet, the iterations stop early (no
+    step decreases the objective): the old contract read any stop before
+    ``max_outer`` as converged.  The solver now solves such a row again and
+    reports STALLED with a violation above the tolerance, never SOLVED; the
+    iteration limit reports LIMIT."""
+    stalled = 0
+    for seed, F, g, lw, lc, _, _, _, _ in solved[:12]:
+        a = np.ascontiguousarray(F.T)
+        w = np.zeros(F.shape[1])
+        obj, iterations, how, _ = _huber_nn_iterate(a, g, w, lw, 0.5 * lc, 1e-15, 100, 8)
+        _, viol, gap = _kkt(a, g, w, lw, 0.5 * lc)
+        if how != STALLED or min(viol, gap) <= 1e-15 * obj:
+            continue
+        stalled += 1
+        assert iterations < 100  # what used to be read as "converged"
+        w2 = np.zeros(F.shape[1])
+        obj2, iterations2, viol2, status = _solve_huber_nn(a, g, w2, lw, 0.5 * lc, 1e-15, 100, 8)
+        assert status == STALLED and viol2 > 1e-15 * obj2
+        assert iterations2 >= iterations
+    assert stalled >= 3
+    # the problem needing the most iterations, with a limit that the solve
+    # and its re-solve (four times the limit) cannot reach
+    runs = [(_solve_huber_nn(np.ascontiguousarray(p[1].T), p[2], np.zeros(p[1].shape[1]), p[3], 0.5 * p[4],
+                             1e-6, 100, 8)[1], p) for p in solved]
+    iterations, problem = max(runs, key=lambda t: t[0])
+    _, F, g, lw, lc = problem[:5]
+    assert iterations >= 6
+    *_, status = _solve_huber_nn(np.ascontiguousarray(F.T), g, np.zeros(F.shape[1]), lw, 0.5 * lc, 1e-6,
+                                 iterations // 6, 8)
+    assert status == LIMIT

@@ -70,6 +70,24 @@ def test_summary_has_cpu_seconds_per_stage(whole_result):
     assert abs(cpu["total"] - sum(v for k, v in cpu.items() if k != "total")) < 1e-9
 
 
+def test_failed_rows_produce_no_change(tmp_path):
+    """Rows whose solve cannot meet the optimality conditions (a tolerance
+    rounding cannot reach on some rows) are failed in ``tile_row_state`` and
+    their pixels carry no evidence in the store: score NaN, never change."""
+    pair = ops.synthesize_pair((192, 256), motion="inplane", changes=6, noise=0.002, seed=11)
+    ref, dist = write_pair(tmp_path / "pair", pair, fmt="npy")
+    store = tmp_path / "strict.zarr"
+    config = DetectConfig(registration=ops.RegistrationParams(tol=1e-12), tile=256)
+    detect(ref, dist, store, config=config)
+    arrays, _ = read_store(store)
+    failed = arrays["tile_row_state"][:, 0] == 3
+    assert 5 <= failed.sum() <= 150
+    assert np.isnan(arrays["change_score"][failed]).all()
+    assert not arrays["change_mask"][failed].any()
+    assert np.isnan(arrays["registered"][failed]).all()
+    assert np.isfinite(arrays["change_score"][~failed]).mean() > 0.5
+
+
 def test_object_across_a_four_tile_corner_is_one_component(tmp_path):
     pair = ops.synthesize_pair((512, 512), motion="wobble", changes=0, noise=0.002, seed=8, scale=0.5)
     distorted = pair.distorted.copy()
