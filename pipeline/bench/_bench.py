@@ -8,8 +8,9 @@ Sections (``--sections``):
 - ``speed``: ``detect`` end to end (threads, all cores) on a synthetic pair with
   in-plane motion and the paper's neighbourhoods, with the automatic ones (with
   and without the slow yaw/pitch part), and translation only; ECC homography
-  time on the same image; each run's CPU-seconds per stage (summed over its
-  tasks) as a table.
+  time on the same image; DIS dense flow with rsmb's change rule on the same
+  pair (seconds, F-measure, rsmb's time as a ratio of it); each run's
+  CPU-seconds per stage (summed over its tasks) as a table.
 - ``real``: the rolling-shutter captures of ``--data`` (GS frame against its RS
   frame, no change): registration RMSE of ``detect``, of the ECC and ORB
   homographies and of DIS dense flow on the same pixels; false changes.
@@ -178,6 +179,7 @@ def bench_speed(workdir, *, size=2048, workers=None):
         scores = evaluate(Path(workdir, f"{name}.zarr"), Path(workdir, "speed_inplane"))
         out[name] = {"megapixels_per_s": s.megapixels_per_s, "seconds": s.timings["total_s"],
                      "f_measure": scores.changes.f_measure, "cpu_s": s.timings["cpu_s"]}
+    _dis_beside(out, pair, Path(workdir, "inplane_auto_neighbourhoods.zarr"))
     t = time.perf_counter()
     ecc = ecc_homography(pair.reference, pair.distorted)
     out["ecc_seconds"] = time.perf_counter() - t
@@ -208,8 +210,26 @@ def bench_speed(workdir, *, size=2048, workers=None):
           f"{out[f'translation_only_{2 * size}']['megapixels_per_s']:.2f} MP/s); ECC homography "
           f"{out['ecc_seconds']:.2f} s "
           f"on the same image (its registration RMSE {out['ecc_registration_rmse_255']:.2f} /255)")
+    _echo(f"speed ({size} x {size}): DIS dense flow (medium) with rsmb's change rule on the same pair "
+          f"{out['dis']['seconds']:.2f} s, F {out['dis']['f_measure']:.3f}; rsmb (automatic neighbourhoods) "
+          f"{out['inplane_auto_neighbourhoods']['seconds']:.2f} s, F {out['inplane_auto_neighbourhoods']['f_measure']:.3f}:"
+          f" {out['rsmb_over_dis_seconds']:.2f}x DIS's time")
     _echo(stage_table({k: v["cpu_s"] for k, v in out.items() if isinstance(v, dict) and "cpu_s" in v}))
     return out
+
+
+def _dis_beside(out, pair, store):
+    """DIS dense flow (medium) with rsmb's change rule on the in-plane pair, in
+    the same run (:func:`pipeline.bench._bench_realclip.dis_changes`): its
+    seconds and F-measure, and rsmb's time as a ratio of it."""
+    from ._bench_realclip import dis_changes
+
+    factor = ops.IntensityScale.from_dict(tiles.open_result_store(store).attrs["intensity"]).scaled(1.0)
+    t = time.perf_counter()
+    mask = dis_changes(np.clip(pair.reference, 0, 1).astype(np.float32),
+                       np.clip(pair.distorted, 0, 1).astype(np.float32), factor=factor)
+    out["dis"] = {"seconds": time.perf_counter() - t, "f_measure": ops.confusion(mask, pair.change_mask).f_measure}
+    out["rsmb_over_dis_seconds"] = out["inplane_auto_neighbourhoods"]["seconds"] / out["dis"]["seconds"]
 
 
 def stage_table(runs):
