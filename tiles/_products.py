@@ -7,21 +7,21 @@ CRS with the fields ``pixels``, ``area_m2``, ``mean_score`` and ``peak_score``.
 Both are written aside (a hidden temporary directory next to the target) and
 renamed into place, so a reader never sees a half-written file.
 
-Area rule (``area_m2``): for a projected CRS, pixel count times the pixel area of
-the geotransform, in square metres (the CRS's linear unit converted to metres);
-this is the area on the map projection, which differs from the ground area by the
-projection's scale (for UTM, at most about 0.1 %).  For a geographic CRS, the
-polygon's area in a Lambert azimuthal equal-area projection on the WGS 84
-ellipsoid centred on the raster (an equal-area projection, so the area is
-geodesic up to the straight-edge approximation of pixel sides, far below a
-pixel's area).  Without a CRS, ``area_m2`` is NaN.
+Area rule (``area_m2``): for a projected CRS, the polygon's planar area
+(shapely) in square metres (the CRS's linear unit converted to metres): pixel
+count times the pixel's area, the area on the map projection, which differs
+from the ground area by the projection's scale (for UTM, at most about 0.1 %).
+For a geographic CRS, the polygon's geodesic area on the CRS's ellipsoid
+(``pyproj.Geod.geometry_area_perimeter``, vertices joined by geodesics).
+Without a CRS, ``area_m2`` is NaN.
+
+The polygons are shapely geometries; their WKB is shapely's.
 """
 
 from __future__ import annotations
 
 import datetime
 import os
-import struct
 import tempfile
 import threading
 from pathlib import Path
@@ -167,7 +167,8 @@ def change_polygons(mask, score, geo: GeoInfo) -> list[ChangePolygon]:
     Parameters
     ----------
     mask : ndarray or zarr array, shape (H, W), bool or uint8
-        The cleaned change mask (non-zero = change); every component is kept.
+        The cleaned change mask: 1 (True) change, 0 none, 255 no evidence
+        (not a change); every component is kept.
     score : ndarray or zarr array, shape (H, W), float
         The change score; NaN = no data.
     geo : GeoInfo
@@ -190,7 +191,7 @@ def change_polygons(mask, score, geo: GeoInfo) -> list[ChangePolygon]:
     if mask.ndim != 2 or mask.shape != score.shape:
         raise ParameterError(f"mask, score: expected two arrays of one shape (H, W), "
                              f"got {mask.shape} and {score.shape}")
-    labels, pixels, _ = label_components(mask != 0, score)
+    labels, pixels, _ = label_components(mask == 1, score)
     n = len(pixels) - 1
     if n == 0:
         return []
@@ -231,60 +232,31 @@ def _component_parts(labels: np.ndarray, geo: GeoInfo) -> dict[int, tuple]:
 
 def _areas(parts: dict[int, tuple], pixels: np.ndarray, geo: GeoInfo) -> np.ndarray:
     """Area in m^2 per label (index 0 unused), by the module's area rule."""
-    from rasterio.crs import CRS
+    import pyproj
 
     areas = np.full(len(pixels), np.nan)
     if geo.crs is None or geo.transform is None:
         return areas
-    crs = CRS.from_user_input(geo.crs)
-    if crs.is_projected:
-        a, b, _, d, e, _ = geo.transform
-        unit = float(crs.linear_units_factor[1])
-        areas[:] = pixels * abs(a * e - b * d) * unit * unit
+    crs = pyproj.CRS.from_user_input(geo.crs)
+    if crs.is_geographic:
+        geod = crs.get_geod()
+        for k, polys in parts.items():
+            areas[k] = abs(geod.geometry_area_perimeter(_geometry(polys))[0])
         return areas
-    laea = _equal_area_crs(geo, parts)
+    unit = float(crs.axis_info[0].unit_conversion_factor) if crs.axis_info else 1.0
     for k, polys in parts.items():
-        areas[k] = sum(_polygon_area(poly, crs, laea) for poly in polys)
+        areas[k] = _geometry(polys).area * unit * unit
     return areas
 
 
-def _equal_area_crs(geo: GeoInfo, parts: dict[int, tuple]) -> str:
-    """A Lambert azimuthal equal-area CRS (WGS 84) centred on the polygons."""
-    from rasterio.crs import CRS
-    from rasterio.warp import transform
+def _geometry(polygons: tuple):
+    """The shapely MultiPolygon of :attr:`ChangePolygon.polygons`."""
+    from shapely.geometry import MultiPolygon
 
-    xs = [x for polys in parts.values() for poly in polys for x, _ in poly[0]]
-    ys = [y for polys in parts.values() for poly in polys for _, y in poly[0]]
-    (lon,), (lat,) = transform(CRS.from_user_input(geo.crs), CRS.from_epsg(4326),
-                               [(min(xs) + max(xs)) / 2], [(min(ys) + max(ys)) / 2])
-    return f"+proj=laea +lat_0={lat} +lon_0={lon} +x_0=0 +y_0=0 +ellps=WGS84 +units=m +no_defs"
-
-
-def _polygon_area(rings: tuple, src_crs, laea: str) -> float:
-    """Area of one polygon (exterior minus holes) in the equal-area CRS, m^2."""
-    from rasterio.warp import transform
-
-    area = 0.0
-    for i, ring in enumerate(rings):
-        xs, ys = transform(src_crs, laea, [p[0] for p in ring], [p[1] for p in ring])
-        x, y = np.asarray(xs), np.asarray(ys)
-        shoelace = 0.5 * abs(float(np.dot(x[:-1], y[1:]) - np.dot(x[1:], y[:-1])))
-        area += shoelace if i == 0 else -shoelace
-    return area
+    return MultiPolygon([(rings[0], rings[1:]) for rings in polygons])
 
 
 # --------------------------------------------------------------------- GeoPackage
-
-
-def _multipolygon_wkb(polygons: tuple) -> bytes:
-    """ISO WKB (little endian) of a 2-D MultiPolygon."""
-    out = [struct.pack("<BII", 1, 6, len(polygons))]
-    for rings in polygons:
-        out.append(struct.pack("<BII", 1, 3, len(rings)))
-        for ring in rings:
-            out.append(struct.pack("<I", len(ring)))
-            out.append(np.asarray(ring, dtype="<f8").tobytes())
-    return b"".join(out)
 
 
 def write_changes_gpkg(
@@ -327,15 +299,17 @@ def write_changes_gpkg(
     -----
     Geometry type MultiPolygon, one feature per component; fields ``pixels``
     (int64), ``area_m2``, ``mean_score``, ``peak_score`` (float64, NaN written as
-    NULL).  Written with pyogrio from WKB, so neither geopandas nor shapely is
+    NULL).  Written with pyogrio from shapely's ISO WKB, so geopandas is not
     needed; pyogrio's INFO line about it ("Created N records") is demoted to
     DEBUG (:func:`quiet_gdal`).
     """
+    import shapely
     from pyogrio.raw import write
 
     final = Path(path)
     _check_absent(final, overwrite)
-    geometry = np.array([_multipolygon_wkb(f.polygons) for f in features] or [], dtype=object)
+    geometry = np.array([shapely.to_wkb(_geometry(f.polygons), flavor="iso", byte_order=1) for f in features] or [],
+                        dtype=object)
     field_data = [
         np.array([f.pixels for f in features], dtype=np.int64),
         np.array([f.area_m2 for f in features], dtype=np.float64),

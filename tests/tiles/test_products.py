@@ -3,6 +3,7 @@ change polygons in a GeoPackage (CRS, one feature per component, pixel sums,
 areas, inside the footprint)."""
 
 import logging
+import struct
 
 import numpy as np
 import pyogrio
@@ -15,7 +16,7 @@ from rasterio.crs import CRS
 from rsmb.ops import InputError, label_components
 from rsmb.tiles import GeoInfo
 from rsmb.tiles._products import (
-    _multipolygon_wkb,
+    _geometry,
     change_polygons,
     write_changes_gpkg,
     write_cog,
@@ -125,11 +126,57 @@ def test_geographic_area_is_geodesic(mask, score):
         assert f.area_m2 == pytest.approx(f.pixels * pixel_m2, rel=1e-3)
 
 
-def test_wkb_layout():
-    square = (((0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0), (0.0, 0.0)),)
-    wkb = _multipolygon_wkb((square,))
-    assert wkb[:9] == b"\x01\x06\x00\x00\x00\x01\x00\x00\x00"
-    assert len(wkb) == 9 + 9 + 4 + 5 * 16
+def _previous_wkb(polygons):
+    """The hand-written ISO WKB (little endian) the products used before shapely."""
+    out = [struct.pack("<BII", 1, 6, len(polygons))]
+    for rings in polygons:
+        out.append(struct.pack("<BII", 1, 3, len(rings)))
+        for ring in rings:
+            out.append(struct.pack("<I", len(ring)))
+            out.append(np.asarray(ring, dtype="<f8").tobytes())
+    return b"".join(out)
+
+
+def _previous_geographic_area(rings, crs):
+    """The area the products gave before pyproj.Geod: shoelace in a Lambert
+    azimuthal equal-area CRS (WGS 84) centred on the polygon."""
+    from rasterio.warp import transform
+
+    xs, ys = np.asarray(rings[0]).T
+    (lon,), (lat,) = transform(crs, CRS.from_epsg(4326), [(xs.min() + xs.max()) / 2], [(ys.min() + ys.max()) / 2])
+    laea = f"+proj=laea +lat_0={lat} +lon_0={lon} +x_0=0 +y_0=0 +ellps=WGS84 +units=m +no_defs"
+    area = 0.0
+    for i, ring in enumerate(rings):
+        x, y = (np.asarray(v) for v in transform(crs, laea, [p[0] for p in ring], [p[1] for p in ring]))
+        a = 0.5 * abs(float(np.dot(x[:-1], y[1:]) - np.dot(x[1:], y[:-1])))
+        area += a if i == 0 else -a
+    return area
+
+
+def test_wkb_is_the_previous_hand_written_one(mask, score):
+    import shapely
+
+    for f in change_polygons(mask, score, GEO):
+        assert shapely.to_wkb(_geometry(f.polygons), flavor="iso", byte_order=1) == _previous_wkb(f.polygons)
+
+
+def test_geodesic_areas_equal_the_previous_equal_area_ones(mask, score):
+    """Pixels of 1e-5 degree: the geodesic area (pyproj.Geod) and the
+    equal-area projection's agree to float tolerance, part by part."""
+    geo = GeoInfo(crs=CRS.from_epsg(4326).to_wkt(), transform=(1e-5, 0.0, 15.0, 0.0, -1e-5, 45.0))
+    crs = CRS.from_epsg(4326)
+    for f in change_polygons(mask, score, geo):
+        previous = sum(_previous_geographic_area(rings, crs) for rings in f.polygons)
+        assert f.area_m2 == pytest.approx(previous, rel=1e-6)
+
+
+def test_no_evidence_is_not_change(mask, score):
+    """255 (no evidence) in a mask is neither a change nor part of one."""
+    marked = np.where(mask == 1, 1, 0).astype(np.uint8)
+    marked[:, :3] = 255
+    marked[30:35, 0:60] = 255
+    expected = change_polygons(mask, score, GEO)
+    assert change_polygons(marked, score, GEO) == expected
 
 
 # -------------------------------------------------------------------- GeoPackage
@@ -144,7 +191,7 @@ def test_gpkg_reopened_with_pyogrio(tmp_path, mask, score):
     assert CRS.from_user_input(info["crs"]) == CRS.from_wkt(UTM)
     meta, _, geometry, fields = read(out, layer="changes")
     assert fields[0].sum() == mask.sum()
-    assert list(geometry) == [_multipolygon_wkb(f.polygons) for f in features]
+    assert list(geometry) == [_previous_wkb(f.polygons) for f in features]
     np.testing.assert_allclose(fields[1], fields[0] * 0.25)
     # inside the footprint of the capture
     left, top = GEO.transform[2], GEO.transform[5]
@@ -194,7 +241,7 @@ def test_gpkg_write_keeps_pyogrio_info_off_the_terminal(tmp_path, mask, score, c
     caplog.set_level(logging.INFO)
     write_changes_gpkg(tmp_path / "a.gpkg", features, GEO.crs)
     assert pyogrio_records() == []
-    pyogrio.raw.write(str(tmp_path / "direct.gpkg"), np.array([_multipolygon_wkb(features[0].polygons)],
+    pyogrio.raw.write(str(tmp_path / "direct.gpkg"), np.array([_previous_wkb(features[0].polygons)],
                       dtype=object), [], [], layer="changes", driver="GPKG", geometry_type="MultiPolygon", crs=GEO.crs)
     assert [r.levelno for r in pyogrio_records()] == [logging.INFO]  # pyogrio used directly: untouched
 
