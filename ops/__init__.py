@@ -21,8 +21,14 @@ from .changes._changes import (
     keep_components,
     label_components,
     large_components,
+    reference_lookup,
     residual_median,
+    sample_at,
     score_histogram,
+    NO_EVIDENCE,
+    GroundFrame,
+    evidence_mask,
+    to_ground,
 )
 from ._errors import InputError, ParameterError, RSMBError, RunError, SolverError
 from ._forward import CameraPath, RenderResult, render
@@ -107,6 +113,12 @@ __all__ = [
     "large_components",
     "fill_holes",
     "changes_to_reference",
+    "reference_lookup",
+    "sample_at",
+    "NO_EVIDENCE",
+    "GroundFrame",
+    "evidence_mask",
+    "to_ground",
     "kapur_threshold",
     "kapur_threshold_histogram",
     "ConfusionCounts",

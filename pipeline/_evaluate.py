@@ -64,7 +64,7 @@ def evaluate(store, truth_dir):
     """
     group = tiles.open_result_store(store)
     truth = read_truth(truth_dir)
-    mask = group["change_mask"][:] > 0
+    mask = group["change_mask"][:] == 1  # 255, no evidence, is not a change
     if mask.shape != truth["change_mask"].shape:
         raise InputError(f"{truth_dir}: truth of shape {truth['change_mask'].shape} does not match the store's "
                          f"{mask.shape}")
@@ -72,7 +72,7 @@ def evaluate(store, truth_dir):
     axes = list(group["trajectory"].attrs["pose_axes"])
     out = {
         "changes": ops.confusion(mask, truth["change_mask"]),
-        "changes_reference": ops.confusion(group["change_mask_reference"][:] > 0, truth["change_mask_reference"]),
+        "changes_reference": ops.confusion(group["change_mask_reference"][:] == 1, truth["change_mask_reference"]),
     }
     idx = [ops.POSE_AXES.index(a) for a in axes]
     registered = group["registered"][:]

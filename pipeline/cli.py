@@ -61,7 +61,9 @@ def _quiet_library_warnings():
               help="Continue an interrupted run: only missing tiles run (a finished run is left as it is).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output store (and --geotiff files).")
 @click.option("--geotiff", type=click.Path(file_okay=False), default=None,
-              help="Also write the masks as GeoTIFFs into this directory (existing files need --overwrite).")
+              help="Also write the ground-frame masks and score as Cloud-Optimised GeoTIFFs into this directory "
+                   "(change_mask_reference.tif, change_score_reference.tif, parallax_mask_reference.tif; "
+                   "existing files need --overwrite).")
 @click.option("--json", "as_json", is_flag=True, help="Print the run summary as JSON.")
 def detect(reference, distorted, output, axes, half_width, step, slow_axes, search, shutter, solver, lambda_w,
            lambda_chi, threshold, min_area, no_layers, focal, tile_size, overlap, scheduler, workers, worker_timeout,
@@ -145,7 +147,7 @@ def evaluate(store, truth_dir, as_json):
 
 
 @cli.command()
-@click.option("--sections", default="oracle,speed,real,yaw,parallax,intensity,realclip,scale,gain,survey,history,ledger",
+@click.option("--sections", default="oracle,speed,real,yaw,parallax,intensity,realclip,scale,gain,survey,history,ledger,ground",
               show_default=True,
               help="Comma-separated sections to run.")
 @click.option("--data", type=click.Path(file_okay=False), default="../shared/data", show_default=True,

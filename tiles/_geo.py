@@ -8,7 +8,10 @@ NaN or infinity, so a non-finite nodata value is written as zarr v3 spells it
 The output store also speaks CF, as rioxarray and odc-geo write it: 1-D ``x`` /
 ``y`` coordinates of the pixel centres (:func:`pixel_centres`, rotation-free
 transforms only) and a ``spatial_ref`` grid-mapping variable
-(:func:`cf_grid_mapping`).
+(:func:`cf_grid_mapping`), for the ground-frame arrays (dimensions y, x) only.
+Sensor-frame arrays (dimensions row, col: the capture's pixels as the rolling
+shutter recorded them) name a ``sensor_frame`` variable as their grid mapping,
+which holds no CRS and no transform: rioxarray and GDAL find none for them.
 """
 
 from __future__ import annotations
@@ -230,7 +233,8 @@ def write_spatial_coords(group, geo, shape: tuple[int, int]) -> list[str]:
     0) holding the CF grid mapping (:func:`cf_grid_mapping`), named in the
     ``grid_mapping`` and ``coordinates`` attributes of every array whose
     dimensions are ("y", "x") (``coordinates`` is how xarray keeps a scalar
-    coordinate).  Then ``xr.open_zarr(store)`` has x/y coordinates and
+    coordinate), and a scalar ``sensor_frame`` named as the grid mapping of
+    every (row, col) array (:func:`_mark_sensor_frame`).  Then ``xr.open_zarr(store)`` has x/y coordinates and
     ``.rio.crs`` / ``.rio.transform()`` of rioxarray give the input's CRS and
     transform.  Call it before :func:`finalize_result_store` consolidates the
     metadata; existing ``x``, ``y``, ``spatial_ref`` arrays are replaced.
@@ -270,4 +274,23 @@ def write_spatial_coords(group, geo, shape: tuple[int, int]) -> list[str]:
         for _, array in group.arrays():
             if tuple(array.metadata.dimension_names or ()) == ("y", "x"):
                 array.attrs.update({"grid_mapping": "spatial_ref", "coordinates": "spatial_ref"})
+        written.append(_mark_sensor_frame(group))
     return written
+
+
+def _mark_sensor_frame(group) -> str:
+    """A scalar ``sensor_frame`` variable without CRS or transform, named as
+    the grid mapping of every (row, col) array: xarray attaches the scalar
+    ``spatial_ref`` coordinate to every array of the store, and rioxarray would
+    read the ground frame's CRS and GeoTransform from it for a sensor-frame
+    array too."""
+    frame = group.create_array("sensor_frame", shape=(), dtype="int64", dimension_names=(), fill_value=0,
+                               overwrite=True)
+    frame[...] = 0
+    frame.attrs.update({"long_name": "sensor frame: the capture's pixels as the rolling shutter recorded them, "
+                                     "warped against the ground by the camera's motion; no map coordinates",
+                        "comment": "the ground frame (dims y, x) has them: see spatial_ref"})
+    for _, array in group.arrays():
+        if tuple(array.metadata.dimension_names or ()) == ("row", "col"):
+            array.attrs.update({"grid_mapping": "sensor_frame"})
+    return "sensor_frame"

@@ -9,7 +9,7 @@ metadata, so
 >>> import xarray as xr
 >>> ds = xr.open_zarr("out.zarr")  # doctest: +SKIP
 
-opens it with dims such as ``change_mask (y, x)``, ``trajectory (row, axis)`` and
+opens it with dims such as ``change_mask_reference (y, x)``, ``trajectory (row, axis)`` and
 ``gain (tile_y, tile_x)`` and without warnings; no extra argument is needed.
 A georeferenced store also has ``x`` / ``y`` coordinates and a CF ``spatial_ref``
 (:func:`tiles.write_spatial_coords`), which rioxarray reads.

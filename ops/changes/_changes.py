@@ -33,6 +33,7 @@ components smaller than ``min_area`` pixels are removed.
 
 import numbers
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numba
@@ -47,6 +48,7 @@ from ._threshold import kapur_threshold_histogram
 __all__ = ["ChangeParams", "ScoreHistogram", "score_histogram", "change_threshold", "residual_median", "change_score",
            "RESIDUAL_BINS", "SCORE_BINS", "change_candidates",
            "label_components", "keep_components", "large_components", "fill_holes", "change_mask", "changes_to_reference",
+           "reference_lookup", "sample_at", "NO_EVIDENCE", "evidence_mask", "GroundFrame", "to_ground",
            "ChangeResult", "detect_changes"]
 
 THRESHOLD_METHODS = ("noise", "kapur")
@@ -379,9 +381,10 @@ def change_mask(score, threshold, *, params=ChangeParams()):
 
 
 @numba.njit(nogil=True, cache=True)
-def _lookup(mask, hom, ref_shape, ref_origin, dist_origin, iterations):
-    out = np.zeros(ref_shape, dtype=np.uint8)
-    hd, wd = mask.shape
+def _lookup(hom, dist_shape, ref_shape, ref_origin, dist_origin, iterations):
+    rows = np.full(ref_shape, -1, dtype=np.int32)
+    cols = np.full(ref_shape, -1, dtype=np.int32)
+    hd, wd = dist_shape
     for v in range(ref_shape[0]):
         yg = v + ref_origin[0]
         for u in range(ref_shape[1]):
@@ -401,37 +404,171 @@ def _lookup(mask, hom, ref_shape, ref_origin, dist_origin, iterations):
             col = xs - dist_origin[1]
             ri, ci = int(round(row)), int(round(col))
             if 0 <= ri < hd and 0 <= ci < wd:
-                out[v, u] = mask[ri, ci]
+                rows[v, u] = ri
+                cols[v, u] = ci
+    return rows, cols
+
+
+def reference_lookup(trajectory, *, axes, camera, reference_shape, distorted_shape=None, reference_origin_yx=(0, 0),
+                     distorted_origin_yx=(0, 0), iterations=4):
+    """The distorted pixel each reference pixel is seen at: the ground frame's
+    index into the sensor frame.
+
+    Each reference pixel is carried forward by the pose of the row it lands in,
+    found by a fixed-point iteration (a rolling-shutter row depends on where the
+    point lands), and rounded to the nearest distorted pixel.
+
+    Parameters
+    ----------
+    trajectory : ndarray, shape (H, D)
+        Per-row centroid poses over ``axes`` (global pose coordinates) of the
+        distorted window's rows.
+    camera : Camera
+        Intrinsics of the whole image.
+    reference_shape : tuple of int
+        (Hr, Wr) of the reference window to fill.
+    distorted_shape : tuple of int, optional
+        (H, W) of the distorted window; default (H, the reference width).
+
+    Returns
+    -------
+    rows, cols : ndarray of int32, shape reference_shape
+        Pixel of the distorted window, -1 in both where the reference pixel
+        lands outside it.
+    """
+    trajectory = np.asarray(trajectory)
+    if distorted_shape is None:
+        distorted_shape = (trajectory.shape[0], int(reference_shape[1]))
+    hom = pose_homographies(np.nan_to_num(trajectory), camera, axes=axes)
+    return _lookup(np.ascontiguousarray(hom), tuple(int(v) for v in distorted_shape),
+                   tuple(int(v) for v in reference_shape), np.asarray(reference_origin_yx, dtype=np.float64),
+                   np.asarray(distorted_origin_yx, dtype=np.float64), int(iterations))
+
+
+def sample_at(values, rows, cols, *, fill):
+    """``values[rows, cols]`` with ``fill`` where the index is -1 (see
+    :func:`reference_lookup`): a sensor-frame array carried to the ground frame.
+
+    Parameters
+    ----------
+    values : ndarray, shape (H, W)
+    rows, cols : ndarray of int, shape (Hr, Wr)
+    fill : scalar
+        Value where the reference pixel lands outside ``values``.
+
+    Returns
+    -------
+    ndarray, shape (Hr, Wr), dtype of ``values``
+    """
+    inside = rows >= 0
+    out = np.full(rows.shape, fill, dtype=values.dtype)
+    out[inside] = values[rows[inside], cols[inside]]
     return out
 
 
 def changes_to_reference(mask, trajectory, *, axes, camera, reference_shape, reference_origin_yx=(0, 0),
-                         distorted_origin_yx=(0, 0), iterations=4):
+                         distorted_origin_yx=(0, 0), iterations=4, fill=0):
     """Mark the reference pixels that the estimated poses carry onto changed pixels.
 
-    Each reference pixel is carried forward by the pose of the row it lands in,
-    found by a fixed-point iteration (a rolling-shutter row depends on where the
-    point lands), and takes the mask value there.
+    Each reference pixel takes the mask value of the distorted pixel it is seen
+    at (:func:`reference_lookup`).
 
     Parameters
     ----------
-    mask : ndarray of bool, shape (H, W)
-        Changes in the distorted grid.
+    mask : ndarray of bool or uint8, shape (H, W)
+        Changes in the distorted grid (uint8 may hold 255: no evidence).
     trajectory : ndarray, shape (H, D)
         Per-row centroid poses over ``axes`` (global pose coordinates).
     camera : Camera
         Intrinsics of the whole image.
     reference_shape : tuple of int
         (Hr, Wr) of the reference window to fill.
+    fill : int
+        Value of reference pixels seen outside ``mask``.
 
     Returns
     -------
     ndarray of uint8, shape reference_shape
     """
-    hom = pose_homographies(np.nan_to_num(trajectory), camera, axes=axes)
-    return _lookup(np.asarray(mask, dtype=np.uint8), np.ascontiguousarray(hom), tuple(int(v) for v in reference_shape),
-                   np.asarray(reference_origin_yx, dtype=np.float64), np.asarray(distorted_origin_yx, dtype=np.float64),
-                   int(iterations))
+    mask = np.asarray(mask, dtype=np.uint8)
+    rows, cols = reference_lookup(trajectory, axes=axes, camera=camera, reference_shape=reference_shape,
+                                  distorted_shape=mask.shape, reference_origin_yx=reference_origin_yx,
+                                  distorted_origin_yx=distorted_origin_yx, iterations=iterations)
+    return sample_at(mask, rows, cols, fill=np.uint8(fill))
+
+
+#: The mask value of a pixel with no evidence (no-data, not seen, a NaN score),
+#: in the store as in the GeoTIFFs: distinct from 0, "no change".
+NO_EVIDENCE = 255
+
+
+def evidence_mask(mask, score):
+    """A change mask with its pixels of no evidence marked.
+
+    Parameters
+    ----------
+    mask : ndarray of bool, shape (H, W)
+        The changes.
+    score : ndarray, shape (H, W)
+        The change score; NaN: no evidence.
+
+    Returns
+    -------
+    ndarray of uint8, shape (H, W)
+        1 where ``mask``, else :data:`NO_EVIDENCE` where the score is NaN, else 0.
+    """
+    out = np.where(np.isfinite(score), np.uint8(0), np.uint8(NO_EVIDENCE))
+    out[np.asarray(mask, dtype=bool)] = 1
+    return out
+
+
+class GroundFrame(NamedTuple):
+    """Sensor-frame results carried to the reference grid (see :func:`to_ground`).
+
+    Attributes
+    ----------
+    mask : ndarray of uint8, shape (Hr, Wr)
+        1 change, 0 no change, :data:`NO_EVIDENCE` no evidence or not seen.
+    score : ndarray of float32, shape (Hr, Wr)
+        The change score; NaN where no evidence or not seen.
+    parallax : ndarray of uint8, shape (Hr, Wr)
+        1 parallax, 0 not, :data:`NO_EVIDENCE` no evidence or not seen.
+    """
+
+    mask: np.ndarray
+    score: np.ndarray
+    parallax: np.ndarray
+
+
+def to_ground(mask, score, parallax, trajectory, *, axes, camera, reference_shape, reference_origin_yx=(0, 0),
+              distorted_origin_yx=(0, 0)):
+    """The change mask, score and parallax mask of a distorted window in the
+    reference grid: each reference pixel takes the values of the distorted
+    pixel it is seen at (:func:`reference_lookup`; nearest pixel).
+
+    Parameters
+    ----------
+    mask, parallax : ndarray of uint8, shape (H, W)
+        Sensor-frame masks as :func:`evidence_mask` makes them.
+    score : ndarray, shape (H, W)
+        Sensor-frame change score, NaN: no evidence.
+    trajectory : ndarray, shape (H, D)
+        Per-row centroid poses of the window's rows over ``axes``.
+    camera : Camera
+    reference_shape : tuple of int
+        (Hr, Wr) of the reference window.
+
+    Returns
+    -------
+    GroundFrame
+        Reference pixels seen outside the window have no evidence.
+    """
+    rows, cols = reference_lookup(trajectory, axes=axes, camera=camera, reference_shape=reference_shape,
+                                  distorted_shape=np.shape(mask), reference_origin_yx=reference_origin_yx,
+                                  distorted_origin_yx=distorted_origin_yx)
+    return GroundFrame(sample_at(np.asarray(mask, np.uint8), rows, cols, fill=np.uint8(NO_EVIDENCE)),
+                       sample_at(np.asarray(score, np.float32), rows, cols, fill=np.float32(np.nan)),
+                       sample_at(np.asarray(parallax, np.uint8), rows, cols, fill=np.uint8(NO_EVIDENCE)))
 
 
 @dataclass(frozen=True)

@@ -24,8 +24,8 @@ An Item (id: the capture's folder below ``captures/``, ``/`` as ``__``, then
   each COG asset (each from its own file);
 - ``rsmb:capture``, ``rsmb:night``, ``rsmb:run_id``, ``rsmb:changes``,
   ``rsmb:changed_m2``;
-- assets: ``change_mask``, ``change_mask_reference``, ``change_score`` (COGs,
-  role ``data``, raster extension ``data_type`` and ``nodata``), ``changes``
+- assets: ``change_mask_reference``, ``change_score_reference``,
+  ``parallax_mask_reference`` (COGs, all in the ground frame, role ``data``, raster extension ``data_type`` and ``nodata``), ``changes``
   (GeoPackage), ``store`` (the zarr store), ``report`` (its ``index.html``,
   role ``overview``) and ``thumbnail`` (role ``thumbnail``); a product that is
   absent (``--no-report``) has no asset.
@@ -49,7 +49,7 @@ __all__ = ["COLLECTION_ID", "STAC_DIR", "update_catalog", "capture_datetime"]
 STAC_DIR = "stac"
 COLLECTION_ID = "rsmb-survey"
 #: (asset key, file in the capture's folder, media type, roles)
-_COGS = ("change_mask", "change_mask_reference", "change_score")
+_COGS = ("change_mask_reference", "change_score_reference", "parallax_mask_reference")
 _OTHER = (("changes", "changes.gpkg", "application/geopackage+sqlite3", ["data"]),
           ("store", "changes.zarr", "application/vnd+zarr", ["data"]),
           ("report", "report/index.html", "text/html", ["overview"]),

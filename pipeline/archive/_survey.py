@@ -562,8 +562,8 @@ def _build(capture, aside, folder, references, config, runner, report, slots):
     tiles.update_attrs(store, {"summary": {**summary.as_dict(), "output": str(folder / "changes.zarr")}})
     group = tiles.open_result_store(store)
     geo = tiles.GeoInfo.from_attrs(group.attrs.asdict())
-    write_products(store, aside, geo, geo)
-    features = tiles.change_polygons(group["change_mask"], group["change_score"], geo)
+    write_products(store, aside, geo)  # the ground frame: the reference grid on the capture's nominal transform
+    features = tiles.change_polygons(group["change_mask_reference"], group["change_score_reference"], geo)
     # dated by the capture, not the clock: a capture redone gives the same file
     tiles.write_changes_gpkg(aside / "changes.gpkg", features, geo.crs,
                              last_change=os.stat(capture).st_mtime)

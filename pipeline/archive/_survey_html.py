@@ -18,7 +18,7 @@ import os
 from pathlib import Path
 
 from ..report._previews import read_preview, reduce_preview
-from ..report._report_figures import block_reduce, overlay_rgb
+from ..report._report_figures import _Changed, block_reduce, overlay_rgb
 
 __all__ = ["write_index", "write_thumbnail"]
 
@@ -40,7 +40,7 @@ def write_thumbnail(group, path, *, side=THUMBNAIL):
     else:
         k = max(1, -(-max(preview.shape[:2]) // side))
         factor, image = step * k, reduce_preview(preview, k)
-    rgb = overlay_rgb(image, block_reduce(group["change_mask"], factor, "max"))
+    rgb = overlay_rgb(image, block_reduce(_Changed(group["change_mask"]), factor, "max"))
     Image.fromarray(rgb, mode="RGB").save(path, compress_level=3)
     return Path(path)
 

@@ -35,6 +35,9 @@ Synthetic pairs are rendered by the independent cubic renderer
   appears, persists and goes and one seen by two overlapping captures: the
   statuses of ``changes.gpkg`` against the truth, and the end-of-night step's
   CPU-seconds (:mod:`pipeline.bench._bench_history`).
+- ``ground``: a night whose captures' georeferencing is off by a few metres:
+  the distance from each true change to its polygon, and the products against
+  the store's ground frame (:mod:`pipeline.bench._bench_ground`).
 """
 
 import contextlib
@@ -63,7 +66,7 @@ from ._baseline import dis_flow, ecc_homography, orb_homography
 __all__ = ["SECTIONS", "run_bench"]
 
 SECTIONS = ("oracle", "speed", "real", "yaw", "parallax", "intensity", "realclip", "scale", "gain", "survey",
-            "history", "ledger")
+            "history", "ledger", "ground")
 PAPER_INPLANE = dict(axes=("tx", "ty", "rz"), half_width=(3.0, 3.0, 2.0), step=(1.0, 1.0, 0.5))
 
 
@@ -469,4 +472,8 @@ def run_bench(*, sections=SECTIONS, data=None, quick=False, workdir=None, sizes=
             from ._bench_ledger import bench_ledger
 
             results["ledger"] = bench_ledger(tmp, count=1000 if quick else 10_000)
+        if "ground" in sections:
+            from ._bench_ground import bench_ground
+
+            results["ground"] = bench_ground(data, tmp, quick=quick)
     return results

@@ -234,7 +234,7 @@ def bench_intensity(workdir, *, size=1024, workers=None):
     store = directory / "o.zarr"
     s = detect(ref, dist, store, workers=workers, overwrite=True)
     arrays = tiles.open_result_store(store)
-    mask = arrays["change_mask"][:] > 0
+    mask = arrays["change_mask"][:] == 1
     clipped = tiles.read_image(dist).data >= 1.0  # at the 8-bit sensor's saturation value
     outside = ~pair.change_mask & pair.valid  # clipped pixels included
     unclipped = ops.confusion(mask, pair.change_mask, valid=~clipped)
@@ -259,7 +259,7 @@ def bench_intensity(workdir, *, size=1024, workers=None):
         ref = write(d / "reference", np.clip(pair.reference, 0, 1))
         dist = write(d / "distorted", np.clip(pair.distorted, 0, 1))
         detect(ref, dist, d / "o.zarr", workers=workers, overwrite=True)
-        masks[name] = tiles.open_result_store(d / "o.zarr")["change_mask"][:] > 0
+        masks[name] = tiles.open_result_store(d / "o.zarr")["change_mask"][:] == 1
         shutil.rmtree(d, ignore_errors=True)
     names = list(masks)
     iou = {f"{a} / {b}": float((masks[a] & masks[b]).sum() / max((masks[a] | masks[b]).sum(), 1))

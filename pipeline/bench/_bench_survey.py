@@ -76,7 +76,7 @@ def _f(store, truth, valid=None):
         return evaluate(store, truth).changes
     import cv2
 
-    mask = tiles.open_result_store(store)["change_mask"][:] > 0
+    mask = tiles.open_result_store(store)["change_mask"][:] == 1
     truth_mask = cv2.imread(str(Path(truth, "change_mask.png")), cv2.IMREAD_UNCHANGED) > 0
     return ops.confusion(mask, truth_mask, valid=valid)
 

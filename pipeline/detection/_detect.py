@@ -19,8 +19,9 @@ whatever the tile, so small tiles would pay them many times over.
    tile histograms; change candidates labelled per block (its score read with
    the margin the local half-maximum test needs), labels merged across seams,
    components kept that reach the threshold and the minimum area; per block,
-   the mask of its window from the kept labels, small holes filled, its core
-   written, and its changes in the reference grid from the fused trajectory;
+   the mask of its window from the kept labels, small holes filled, no
+   evidence marked 255, its core written, and its mask, score and parallax
+   mask in the reference grid (the ground frame) from the fused trajectory;
 6. :func:`_finish`: attributes, an atomic rename of the store, GeoTIFFs on
    request.
 """
@@ -43,7 +44,7 @@ from rsmb.ops.depth._layers import MIN_COVERED, MIN_EXPLAINED
 from . import _tasks
 from ._tasks import _specs, _tile_done, _tile_results
 from ._fuse import _agreement, _fuse, _outliers
-from ._outputs import _check_outputs, _finished, write_products
+from ._outputs import _check_outputs, _finished, ground_geo, write_products
 from ._overview import slow_stage
 from ._plan import VERSION, DetectConfig, DetectResult, _plan
 from .._scheduler import WORKER_TIMEOUT, check_scheduler, open_runner
@@ -166,11 +167,10 @@ def _change_masks(runner, run, plan, fused, hist, timings):
             kept[b.index] = (b.core, keep)
     stored_path = fused.astype(np.float32).astype(np.float64)  # as the store holds it
     args = []
-    for b in blocks:
+    for b in blocks:  # every block: its no-evidence marks and its ground frame
         window = b.grown(plan.grid.halo, shape)
         pieces = [kept[i] for i in blocks.covering(window) if i in kept]
-        if pieces:
-            args.append((run, b, window, pieces, stored_path[window[0]], plan.camera, plan.params.trajectory_axes, changes))
+        args.append((run, b, window, pieces, stored_path[window[0]], plan.camera, plan.params.trajectory_axes, changes))
     masked = runner.map("masks", _tasks.mask_task, args)
     timings["changes_s"] = time.perf_counter() - t0
     timings["changes_compute_s_sum"] = float(sum(c for _, c, _ in labelled) + sum(c for _, c in masked))
@@ -260,17 +260,16 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff):
                  f"{MIN_COVERED:.0%} of it; only its pixels explained at that depth, on the layer's edge or "
                  "disoccluded join parallax_mask, the rest stays a change candidate",
          "components": _tasks.layer_components(group)})
-    tiles.write_spatial_coords(group, plan.distorted.geo, plan.shape)
+    # only the ground-frame arrays (dims y, x) get map coordinates
+    geo = ground_geo(plan.pairing.mode, plan.references[0].geo, plan.distorted.geo)
+    tiles.write_spatial_coords(group, geo, plan.shape)
     group["trajectory"].attrs.update({"pose_axes": list(axes), "units": [ops.AXIS_UNITS[a] for a in axes]})
     for name in ("work", "ingest"):
         del group[name]
     write_previews(group, plan.pairing)  # what the report shows of the inputs, which may not stay where they are
     final = tiles.finalize_result_store(store, plan.output, overwrite=overwrite)
     if geotiff is not None:
-        # the reference-grid mask is on the reference's grid when compared pixel for pixel, else on the
-        # capture's nominal grid
-        reference_geo = plan.references[0].geo if plan.pairing.mode == "pixel" else plan.distorted.geo
-        write_products(final, geotiff, reference_geo, plan.distorted.geo, overwrite=overwrite)
+        write_products(final, geotiff, geo, overwrite=overwrite)
     log.info("wrote %s: %d changed px (threshold %.3f), %.2f MP/s", final, result.changed_pixels, result.threshold,
              result.megapixels_per_s)
 

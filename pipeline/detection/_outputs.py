@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from rsmb import tiles
+from rsmb import ops
 from rsmb.ops import InputError
 
 __all__ = []
@@ -17,8 +18,9 @@ __all__ = []
 log = logging.getLogger("rsmb")
 
 
-GEOTIFFS = ("change_mask.tif", "change_mask_reference.tif", "change_score.tif")
-MASK_NODATA = 255
+#: The GIS rasters, all in the ground frame: each the store's array of its name.
+GEOTIFFS = ("change_mask_reference.tif", "change_score_reference.tif", "parallax_mask_reference.tif")
+MASK_NODATA = ops.NO_EVIDENCE
 
 
 def _check_outputs(output, geotiff, overwrite):
@@ -53,35 +55,29 @@ def _finished(output, key):
     return attrs["summary"]
 
 
-class _Known:
-    """``array[rows]`` (strips of a zarr array) with ``fill`` where the
-    registration is unknown (``registered`` is NaN): the no-data of a raster
-    product."""
-
-    def __init__(self, array, registered, fill):
-        self.array, self.registered, self.fill = array, registered, fill
-        self.shape, self.dtype = array.shape, array.dtype
-
-    def __getitem__(self, key):
-        values = np.asarray(self.array[key])
-        return np.where(np.isfinite(self.registered[key]), values, self.fill).astype(self.dtype)
+def ground_geo(pairing_mode, reference_geo, capture_geo):
+    """The georeferencing of the ground frame (the reference grid): the
+    capture's nominal grid when the pair was paired by georeferencing; the
+    reference's own when compared pixel for pixel (the capture's when the
+    reference has none: the two grids are the same by assumption)."""
+    if pairing_mode == "pixel" and not reference_geo.is_empty:
+        return reference_geo
+    return capture_geo
 
 
-def write_products(store, directory, reference_geo, capture_geo, *, overwrite=False):
-    """The masks and the score as Cloud-Optimised GeoTIFFs in ``directory``
-    (:data:`GEOTIFFS`: overviews, band descriptions, no-data 255 for the masks
-    and NaN for the score where the registration is unknown), each written
-    aside and renamed into place.  Returns the paths."""
+def write_products(store, directory, geo, *, overwrite=False):
+    """The ground-frame masks and score as Cloud-Optimised GeoTIFFs in
+    ``directory`` (:data:`GEOTIFFS`, each the store's array of that name with
+    ``geo``: overviews, band descriptions, no-data 255 for the masks and NaN
+    for the score, as in the store), each written aside and renamed into place.
+    Returns the paths."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     group = tiles.open_result_store(store)
-    registered = group["registered"]
-    products = {"change_mask.tif": ("change_mask", capture_geo, MASK_NODATA),
-                "change_mask_reference.tif": ("change_mask_reference", reference_geo, MASK_NODATA),
-                "change_score.tif": ("change_score", capture_geo, float("nan"))}
     paths = []
     for name in GEOTIFFS:
-        array, geo, nodata = products[name]
-        paths.append(tiles.write_cog(directory / name, _Known(group[array], registered, nodata), geo, nodata=nodata,
-                                     description=array, overwrite=overwrite))
+        array = group[name[:-4]]
+        nodata = float("nan") if array.dtype.kind == "f" else MASK_NODATA
+        paths.append(tiles.write_cog(directory / name, array, geo, nodata=nodata, description=name[:-4],
+                                     overwrite=overwrite))
     return paths

@@ -29,22 +29,26 @@ def _specs(grid, dims, margin=0):
     ny, nx = grid.grid_shape
     spec = tiles.ArraySpec
     return {
-        "registered": spec((h, w), "float32", (t, t), ("y", "x"), float("nan")),
-        "change_score": spec((h, w), "float32", (t, t), ("y", "x"), 0.0),
-        "change_mask": spec((h, w), "uint8", (t, t), ("y", "x")),
-        "change_mask_reference": spec((h, w), "uint8", (t, t), ("y", "x")),
-        "parallax_mask": spec((h, w), "uint8", (t, t), ("y", "x")),
-        "trajectory": spec((h, dims), "float32", (t, dims), ("y", "pose_axis"), float("nan")),
-        "tile_trajectory": spec((h, nx, dims), "float32", (h, nx, dims), ("y", "tile_x", "pose_axis"), float("nan")),
-        "tile_row_state": spec((h, nx), "uint8", (h, nx), ("y", "tile_x")),
+        # sensor frame: the capture's pixels as the rolling shutter recorded them (pixel dimensions only)
+        "registered": spec((h, w), "float32", (t, t), ("row", "col"), float("nan")),
+        "change_score": spec((h, w), "float32", (t, t), ("row", "col"), 0.0),
+        "change_mask": spec((h, w), "uint8", (t, t), ("row", "col")),
+        "parallax_mask": spec((h, w), "uint8", (t, t), ("row", "col")),
+        "trajectory": spec((h, dims), "float32", (t, dims), ("row", "pose_axis"), float("nan")),
+        "tile_trajectory": spec((h, nx, dims), "float32", (h, nx, dims), ("row", "tile_x", "pose_axis"), float("nan")),
+        "tile_row_state": spec((h, nx), "uint8", (h, nx), ("row", "tile_x")),
         "gain": spec((ny, nx), "float32", (ny, nx), ("tile_y", "tile_x"), float("nan")),
         "tile_agreement": spec((ny, nx), "float32", (ny, nx), ("tile_y", "tile_x"), float("nan")),
+        # ground frame: the reference grid (x, y and spatial_ref when georeferenced)
+        "change_mask_reference": spec((h, w), "uint8", (t, t), ("y", "x"), ops.NO_EVIDENCE),
+        "change_score_reference": spec((h, w), "float32", (t, t), ("y", "x"), float("nan")),
+        "parallax_mask_reference": spec((h, w), "uint8", (t, t), ("y", "x"), ops.NO_EVIDENCE),
         # scratch, one chunk per tile, deleted when the run finishes
         "work/tile_rows": spec((h, nx, dims + 1), "float32", (t, 1, dims + 1), ("y", "tile_x", "column"),
                                float("nan"), compressed=False),
         "work/tile_summary": spec((ny, nx, _SUMMARY), "float64", (1, 1, _SUMMARY), ("tile_y", "tile_x", "value"),
                                   compressed=False),
-        "work/labels": spec((h, w), "int32", (t, t), ("y", "x"), compressed=False),
+        "work/labels": spec((h, w), "int32", (t, t), ("row", "col"), compressed=False),
         "work/slow": spec((h, 3), "float32", (h, 3), ("y", "slow"), float("nan"), compressed=False),
         "work/tile_layers": spec((ny, nx, LAYER_SLOTS, len(LAYER_FIELDS)), "float64",
                                  (1, 1, LAYER_SLOTS, len(LAYER_FIELDS)), ("tile_y", "tile_x", "layer", "field"),
@@ -256,30 +260,39 @@ def _inside(part, window):
 
 
 def mask_task(store, block, window, kept, trajectory, camera, axes, change_params):
-    """Stage 3: one block's changes in both grids.  The kept labels of the blocks
-    under its window (core plus halo) make the window's mask, small holes are
-    filled there (a hole cut by a seam is filled like any other), the core is
-    written, and the window's mask carried by the fused ``trajectory`` (rows of
-    the window) gives the block's changes in the reference grid.
+    """Stage 3: one block's changes in both frames.  The kept labels of the
+    blocks under its window (core plus halo) make the window's mask, small
+    holes are filled there (a hole cut by a seam is filled like any other),
+    pixels with no evidence (a NaN score) are marked :data:`ops.NO_EVIDENCE`
+    in it and in the parallax mask, their cores are written, and the window
+    carried by the fused ``trajectory`` (rows of the window) gives the
+    block's mask, score and parallax mask in the reference grid
+    (:func:`ops.to_ground`).  Every block runs: the no-evidence marks and the
+    ground frame are needed whether or not a change is near.
 
     ``kept`` lists (core, keep flags per local label) of the blocks under the
-    window that kept some label (blocks with none are not run: both masks read 0
-    where nothing was written).  Returns (changed core pixels, compute seconds).
+    window that kept some label.  Returns (changed core pixels, compute seconds).
     """
-    labels = _array(store, "work/labels")[window]
+    labels = _array(store, "work/labels")[window] if kept else None
+    score = _array(store, "change_score")[window]
+    parallax = _array(store, "parallax_mask")[window]
     start = time.perf_counter()
-    mask = np.zeros(labels.shape, dtype=bool)
+    mask = np.zeros(score.shape, dtype=bool)
     for core, keep in kept:
         part = _inside(tuple(slice(max(c.start, w.start), min(c.stop, w.stop)) for c, w in zip(core, window)), window)
         mask[part] = keep[labels[part]]
-    mask = ops.fill_holes(mask, params=change_params)
-    core_mask = mask[_inside(block.core, window)]
-    ref = ops.changes_to_reference(mask, trajectory, axes=axes, camera=camera, reference_shape=block.core_shape,
-                                   reference_origin_yx=block.core_origin,
-                                   distorted_origin_yx=(window[0].start, window[1].start))
+    if kept:
+        mask = ops.fill_holes(mask, params=change_params)
+    sensor = ops.evidence_mask(mask, score)
+    parallax = np.where(np.isfinite(score), parallax == 1, ops.NO_EVIDENCE).astype(np.uint8)
+    ground = ops.to_ground(sensor, score, parallax, trajectory, axes=axes, camera=camera,
+                           reference_shape=block.core_shape, reference_origin_yx=block.core_origin,
+                           distorted_origin_yx=(window[0].start, window[1].start))
+    core = _inside(block.core, window)
     compute = time.perf_counter() - start
-    if core_mask.any():
-        _array(store, "change_mask")[block.core] = core_mask.astype(np.uint8)
-    if ref.any():
-        _array(store, "change_mask_reference")[block.core] = ref
-    return int(core_mask.sum()), compute
+    _array(store, "change_mask")[block.core] = sensor[core]
+    _array(store, "parallax_mask")[block.core] = parallax[core]
+    _array(store, "change_mask_reference")[block.core] = ground.mask
+    _array(store, "change_score_reference")[block.core] = ground.score
+    _array(store, "parallax_mask_reference")[block.core] = ground.parallax
+    return int(mask[core].sum()), compute

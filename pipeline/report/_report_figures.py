@@ -235,7 +235,7 @@ def _rings(changed, small=4, many=64):
 
 
 def _write_overlay(group, grid, factor, path):
-    mask = block_reduce(group["change_mask"], factor, "max")
+    mask = block_reduce(_Changed(group["change_mask"]), factor, "max")
     gray = block_reduce(group["registered"], factor, "mean")
     h, w = gray.shape
     rgb = overlay_rgb(gray, mask, _grid_lines(grid["row_edges"], factor, h),

@@ -87,19 +87,19 @@ def _bad_outputs(tmp_path):
     (existing / "zarr.json").write_text("{}")
     masks = tmp_path / "masks"
     masks.mkdir()
-    (masks / "change_mask.tif").write_bytes(b"an earlier night's mask")
+    (masks / "change_mask_reference.tif").write_bytes(b"an earlier night's mask")
     cases = [
         (["-o", str(afile / "o.zarr")], str(afile / "o.zarr")),
         (["-o", str(existing)], str(existing)),
         (["-o", str(tmp_path / "o.zarr"), "--geotiff", str(afile)], str(afile)),
         (["-o", str(tmp_path / "o.zarr"), "--geotiff", str(afile / "sub")], str(afile / "sub")),
-        (["-o", str(tmp_path / "o.zarr"), "--geotiff", str(masks)], str(masks / "change_mask.tif")),
+        (["-o", str(tmp_path / "o.zarr"), "--geotiff", str(masks)], str(masks / "change_mask_reference.tif")),
     ]
     if os.geteuid() != 0:  # root writes anywhere: a read-only directory only stops other users
         locked = tmp_path / "locked"
         locked.mkdir(mode=0o500)
         cases.append((["-o", str(locked / "o.zarr")], str(locked / "o.zarr")))
-    return cases, masks / "change_mask.tif"
+    return cases, masks / "change_mask_reference.tif"
 
 
 def test_unwritable_outputs_exit_2_before_work(tmp_path, small_pair_files, capsys, no_work):

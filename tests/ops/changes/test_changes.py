@@ -58,6 +58,33 @@ def test_constant_translation_shifts_the_mask_back(blobs, tx, ty):
     np.testing.assert_array_equal(out.astype(bool), expected)
 
 
+def test_to_ground_carries_mask_score_and_parallax_and_marks_what_was_not_seen(blobs):
+    """A constant translation (tx, ty) = (5, -3): ground pixel (v, u) is seen
+    at capture pixel (v - 3, u + 5).  The three arrays follow it; no evidence
+    (a NaN score) stays 255 / NaN, and ground pixels seen outside the capture
+    have no evidence."""
+    tx, ty = 5, -3
+    rng = np.random.default_rng(4)
+    score = rng.random(SHAPE).astype(np.float32)
+    score[20:26, 0:30] = np.nan
+    sensor = ops.evidence_mask(blobs, score)
+    assert set(np.unique(sensor)) == {0, 1, 255} and (sensor[blobs] == 1).all()
+    parallax = np.where(np.isfinite(score), (rng.random(SHAPE) < 0.1), 255).astype(np.uint8)
+    trajectory = np.broadcast_to([float(tx), float(ty)], (SHAPE[0], 2))
+    ground = ops.to_ground(sensor, score, parallax, trajectory, axes=("tx", "ty"), camera=Camera.for_shape(SHAPE),
+                           reference_shape=SHAPE)
+    v, u = np.mgrid[:SHAPE[0], :SHAPE[1]]
+    r, c = v + ty, u + tx
+    seen = (r >= 0) & (r < SHAPE[0]) & (c >= 0) & (c < SHAPE[1])
+    rr, cc = np.clip(r, 0, SHAPE[0] - 1), np.clip(c, 0, SHAPE[1] - 1)
+    np.testing.assert_array_equal(ground.mask, np.where(seen, sensor[rr, cc], 255))
+    np.testing.assert_array_equal(ground.parallax, np.where(seen, parallax[rr, cc], 255))
+    np.testing.assert_array_equal(ground.score, np.where(seen, score[rr, cc], np.nan))
+    assert ground.mask.dtype == np.uint8 and ground.score.dtype == np.float32
+    assert np.array_equal(ground.mask == 255, np.isnan(ground.score))
+
+
+
 def test_rolling_shutter_trajectory_shifts_each_row_by_its_own_pose(blobs):
     """tx growing by 0.37 px per row: reference row v is carried by row v's pose."""
     camera = Camera.for_shape(SHAPE)

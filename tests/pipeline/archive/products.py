@@ -51,8 +51,9 @@ def write_capture_folder(folder, capture, origin_yx, shape, changes, *, datetime
     mask = mask_of(shape, origin_yx, changes)
     score = np.where(mask == NODATA, np.nan, mask.astype(np.float32))
     tiles.write_cog(folder / "change_mask_reference.tif", mask, geo, nodata=NODATA)
-    tiles.write_cog(folder / "change_mask.tif", mask, geo, nodata=NODATA)
-    tiles.write_cog(folder / "change_score.tif", score, geo, nodata=float("nan"))
+    tiles.write_cog(folder / "change_score_reference.tif", score, geo, nodata=float("nan"))
+    tiles.write_cog(folder / "parallax_mask_reference.tif", np.where(mask == NODATA, NODATA, 0).astype(np.uint8),
+                    geo, nodata=NODATA)
     tiles.write_changes_gpkg(folder / "changes.gpkg", [], geo.crs)
     zarr.open_group(str(folder / "changes.zarr"), mode="w")
     Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(folder / "thumbnail.png")

@@ -52,8 +52,8 @@ def test_the_catalog_reads_back_and_every_asset_resolves(night1):
     items = _items(catalog)
     assert [i.id for i in items] == [f"flight__{n}__{NIGHT1}" for n in ("a", "b")]
     for item in items:
-        assert set(item.assets) == {"change_mask", "change_mask_reference", "change_score", "changes", "store",
-                                    "report", "thumbnail"}
+        assert set(item.assets) == {"change_mask_reference", "change_score_reference", "parallax_mask_reference",
+                                    "changes", "store", "report", "thumbnail"}
         for asset in item.assets.values():
             assert not os.path.isabs(asset.href), asset.href
             assert os.path.exists(asset.get_absolute_href()), asset.href
@@ -100,7 +100,7 @@ def test_an_item_has_its_footprint_grid_and_datetime(night1):
     assert b.datetime.timestamp() == pytest.approx(mtime, abs=1e-3)
     mask = a.assets["change_mask_reference"].extra_fields
     assert mask["raster:bands"] == [{"data_type": "uint8", "nodata": 255}]
-    assert a.assets["change_score"].extra_fields["raster:bands"] == [{"data_type": "float32", "nodata": "nan"}]
+    assert a.assets["change_score_reference"].extra_fields["raster:bands"] == [{"data_type": "float32", "nodata": "nan"}]
     assert mask["proj:code"] == "EPSG:32618" and mask["proj:shape"] == [h, w]
 
 

@@ -113,20 +113,20 @@ def test_each_capture_folder_holds_its_products(first_night):
 
     night, out = first_night.night, first_night.out
     folder = out / "captures" / "flight1" / "cap1.tif"
-    assert sorted(p.name for p in folder.iterdir()) == ["change_mask.tif", "change_mask_reference.tif",
-                                                       "change_score.tif", "changes.gpkg", "changes.zarr", "report",
-                                                       "thumbnail.png"]
+    assert sorted(p.name for p in folder.iterdir()) == ["change_mask_reference.tif", "change_score_reference.tif",
+                                                       "changes.gpkg", "changes.zarr", "parallax_mask_reference.tif",
+                                                       "report", "thumbnail.png"]
     with rasterio.open(night / "flight1" / "cap1.tif") as src:
         crs, bounds = src.crs, src.bounds
     info = pyogrio.read_info(folder / "changes.gpkg", layer="changes", force_total_bounds=True)
     arrays, attrs = read_store(folder / "changes.zarr")
     assert info["crs"] in (crs.to_string(), f"EPSG:{crs.to_epsg()}")
-    assert info["features"] == attrs["summary"]["components"] >= 1
+    assert info["features"] >= 1
     _, _, geometry, fields = pyogrio.raw.read(folder / "changes.gpkg", layer="changes")
-    assert fields[0].sum() == (arrays["change_mask"] > 0).sum()  # pixels
+    assert fields[0].sum() == (arrays["change_mask_reference"] == 1).sum()  # pixels, in the ground frame
     xmin, ymin, xmax, ymax = info["total_bounds"]
     assert bounds.left <= xmin and xmax <= bounds.right and bounds.bottom <= ymin and ymax <= bounds.top
-    for name, nodata in (("change_mask.tif", 255), ("change_score.tif", None)):
+    for name, nodata in (("change_mask_reference.tif", 255), ("change_score_reference.tif", None)):
         with rasterio.open(folder / name) as ds:
             assert ds.crs == crs and ds.descriptions[0] == name[:-4]
             assert (ds.nodata == nodata) if nodata is not None else np.isnan(ds.nodata)
@@ -137,12 +137,12 @@ def test_each_capture_folder_holds_its_products(first_night):
 
 
 def test_the_products_are_the_stores_kept_components(first_night):
-    """Every done capture's GIS products against its own store: each COG holds
-    the store's array with its no-data (255, NaN) exactly where the
-    registration is unknown, and has overviews (nearest for the masks, so
-    still 0, 1 or no-data) when larger than one 512-px block; changes.gpkg
-    has one polygon per kept component (8-connected components of the stored
-    mask), with its pixel count and area_m2 = pixels x the pixel's area."""
+    """Every done capture's GIS products against its own store's ground
+    frame: each COG holds the store's array of its name, no-data (255, NaN)
+    included, and has overviews (nearest for the masks, so still 0, 1 or
+    no-data) when larger than one 512-px block; changes.gpkg has one polygon
+    per 8-connected component of change_mask_reference, with its pixel count
+    and area_m2 = pixels x the pixel's area."""
     import pyogrio
     import rasterio
     from scipy import ndimage
@@ -150,24 +150,27 @@ def test_the_products_are_the_stores_kept_components(first_night):
     out, night = first_night.out, first_night.night
     for name in ("cap0", "cap1", "cap2", "cap3"):
         folder = out / "captures" / "flight1" / f"{name}.tif"
-        arrays, attrs = read_store(folder / "changes.zarr")
+        arrays, _ = read_store(folder / "changes.zarr")
         unknown = ~np.isfinite(arrays["registered"])
         assert unknown.any() == (name == "cap3")  # cap3 overhangs the reference
-        for product, nodata in (("change_mask", 255), ("change_mask_reference", 255), ("change_score", np.nan)):
+        ground = arrays["change_mask_reference"]  # 255: no evidence, or a ground pixel the capture did not see
+        assert np.array_equal(ground == 255, np.isnan(arrays["change_score_reference"])), name
+        assert (ground == 255).mean() > 0.05 if name == "cap3" else (ground == 255).mean() < 0.05, name
+        for product, nodata in (("change_mask_reference", 255), ("change_score_reference", np.nan),
+                                ("parallax_mask_reference", 255)):
             with rasterio.open(folder / f"{product}.tif") as ds:
                 assert ds.nodata == nodata or (np.isnan(nodata) and np.isnan(ds.nodata)), (name, product)
-                expected = np.where(unknown, nodata, arrays[product]).astype(ds.dtypes[0])
-                np.testing.assert_array_equal(ds.read(1), expected, err_msg=f"{name} {product}")
+                np.testing.assert_array_equal(ds.read(1), arrays[product], err_msg=f"{name} {product}")
                 assert ds.overviews(1) == ([2] if max(ds.shape) > 512 else []), (name, product)
-                if ds.overviews(1) and product != "change_score":
+                if ds.overviews(1) and product == "change_mask_reference":
                     overview = ds.read(1, out_shape=(ds.height // 2, ds.width // 2))
                     assert set(np.unique(overview)) == {0, 1, 255}, (name, product)
         with rasterio.open(night / "flight1" / f"{name}.tif") as src:
             a, b, _, d, e, _ = tuple(src.transform)[:6]
-        labels, count = ndimage.label(arrays["change_mask"] > 0, structure=np.ones((3, 3)))
+        labels, count = ndimage.label(arrays["change_mask_reference"] == 1, structure=np.ones((3, 3)))
         _, _, geometry, fields = pyogrio.raw.read(folder / "changes.gpkg", layer="changes")
         pixels, area_m2 = fields[0], fields[1]
-        assert len(geometry) == count == attrs["summary"]["components"] >= 1, name
+        assert len(geometry) == count >= 1, name
         assert sorted(pixels) == sorted(np.bincount(labels.ravel())[1:]), name
         np.testing.assert_allclose(area_m2, pixels * abs(a * e - b * d), rtol=1e-12, err_msg=name)
 

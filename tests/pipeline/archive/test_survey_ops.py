@@ -132,7 +132,7 @@ def test_names_that_nest_or_shadow_the_survey_cannot_collide(archive, tmp_path):
     assert summary["done"] == 4
     for name in names:
         folder = out / "captures" / name
-        assert (folder / "changes.gpkg").is_file() and (folder / "change_mask.tif").is_file(), name
+        assert (folder / "changes.gpkg").is_file() and (folder / "change_mask_reference.tif").is_file(), name
     assert (out / "index.html").is_file() and len(list((out / "nights").glob("*.json"))) == 1
     _capture(night / "a.tif", scene, (70, 60), seed=60)
     time.sleep(0.01)

@@ -47,9 +47,9 @@ def test_tiled_equals_whole(tmp_path, wide_pair, whole_result, tile):
     assert attrs["tile_grid"]["tiles"] == [4, 4]
     widths = np.diff(attrs["tile_grid"]["col_edges"])
     assert len(set(widths)) > 1  # a ragged (or merged) edge tile
-    a, b = whole["change_mask"] > 0, tiled["change_mask"] > 0
+    a, b = whole["change_mask"] == 1, tiled["change_mask"] == 1
     assert _iou(a, b) >= 0.98
-    assert _iou(whole["change_mask_reference"] > 0, tiled["change_mask_reference"] > 0) >= 0.98
+    assert _iou(whole["change_mask_reference"] == 1, tiled["change_mask_reference"] == 1) >= 0.98
     rows = np.isfinite(whole["registered"]).mean(axis=1) > 0.5  # rows whose content is in the reference
     diff = tiled["trajectory"][rows] - whole["trajectory"][rows]
     assert np.sqrt(np.mean(diff[:, :2] ** 2, axis=0)).max() <= 0.1  # px, tx and ty
@@ -100,7 +100,7 @@ def test_object_across_a_four_tile_corner_is_one_component(tmp_path):
     for tile in (256, 512):
         store = tmp_path / f"t{tile}.zarr"
         detect(ref_path, dist_path, store, config=DetectConfig(tile=tile, changes=changes))
-        results[tile] = read_store(store)[0]["change_mask"] > 0
+        results[tile] = read_store(store)[0]["change_mask"] == 1
     from scipy import ndimage
 
     labels, n = ndimage.label(results[256], structure=np.ones((3, 3)))
@@ -122,24 +122,22 @@ def test_geotiff_in_geotiff_out(tmp_path, geotiff_pair_files):
         crs, transform = src.crs, src.transform
     assert attrs["proj:code"] == "EPSG:32618"
     assert tuple(attrs["spatial:transform"]) == pytest.approx(tuple(transform)[:6])
-    for name in ("change_mask.tif", "change_mask_reference.tif", "change_score.tif"):
+    for name in ("change_mask_reference.tif", "change_score_reference.tif", "parallax_mask_reference.tif"):
         with rasterio.open(gtiff / name) as out:
             assert out.crs == crs
             assert out.transform.almost_equals(transform)
             assert out.shape == (256, 256)
     arrays = read_store(store)[0]
-    unknown = np.isnan(arrays["registered"])
-    with rasterio.open(gtiff / "change_mask.tif") as out:
-        mask = out.read(1)
-        assert out.nodata == 255 and out.descriptions == ("change_mask",)
-        assert np.array_equal(mask == 255, unknown)  # no-data where the registration is unknown
-        assert np.array_equal(mask[~unknown], arrays["change_mask"][~unknown])
-    with rasterio.open(gtiff / "change_score.tif") as out:
-        score = out.read(1)
-        assert np.array_equal(np.isnan(score), unknown)
-        assert np.array_equal(score[~unknown], arrays["change_score"][~unknown])
+    for name, nodata in (("change_mask_reference", 255), ("change_score_reference", None),
+                         ("parallax_mask_reference", 255)):
+        with rasterio.open(gtiff / f"{name}.tif") as out:  # the store's ground-frame array, no-data and all
+            assert out.descriptions == (name,) and (out.nodata == nodata if nodata else np.isnan(out.nodata))
+            assert np.array_equal(out.read(1), arrays[name], equal_nan=True)
+    ground = arrays["change_mask_reference"]
+    assert set(np.unique(ground)) == {0, 1, 255} and np.array_equal(ground == 255, np.isnan(
+        arrays["change_score_reference"]))
     ds = xr.open_zarr(store)
-    assert ds.attrs["proj:code"] == "EPSG:32618" and ds["change_mask"].dims == ("y", "x")
+    assert ds.attrs["proj:code"] == "EPSG:32618" and ds["change_mask"].dims == ("row", "col")
 
 
 def test_smooth_gain_per_tile(tmp_path):
@@ -212,9 +210,14 @@ def test_local_schedulers_agree(tmp_path, small_pair_files, scheduler):
 
 
 def test_store_opens_with_coordinates_and_crs(tmp_path, geotiff_pair_files):
+    """Opened with xarray and rioxarray, the ground-frame arrays have x, y,
+    the capture's CRS and transform; the sensor-frame arrays have pixel
+    dimensions, no map coordinates, no CRS, and rioxarray refuses to write
+    them as a raster: the two frames cannot be mistaken."""
     import rasterio
     import rioxarray  # noqa: F401 - registers .rio
     import xarray as xr
+    from rioxarray.exceptions import MissingSpatialDimensionError
 
     _, ref, dist = geotiff_pair_files
     store = tmp_path / "geo.zarr"
@@ -224,5 +227,14 @@ def test_store_opens_with_coordinates_and_crs(tmp_path, geotiff_pair_files):
         transform, epsg, (h, w) = src.transform, src.crs.to_epsg(), src.shape
     np.testing.assert_allclose(ds.x.values, transform.c + transform.a * (np.arange(w) + 0.5))
     np.testing.assert_allclose(ds.y.values, transform.f + transform.e * (np.arange(h) + 0.5))
-    assert ds.change_mask.rio.crs.to_epsg() == epsg == 32618
-    assert ds.change_mask.rio.transform() == transform
+    for name in ("change_mask_reference", "change_score_reference", "parallax_mask_reference"):
+        a = ds[name]
+        assert a.dims == ("y", "x") and {"x", "y"} <= set(a.coords), name
+        assert a.rio.crs.to_epsg() == epsg == 32618 and a.rio.transform() == transform, name
+    for name in ("change_mask", "change_score", "parallax_mask", "registered"):
+        a = ds[name]
+        assert a.dims == ("row", "col") and not {"x", "y"} & set(a.coords), name
+        assert a.rio.crs is None and a.rio.transform().is_identity, name
+        with pytest.raises(MissingSpatialDimensionError):
+            a.rio.to_raster(tmp_path / f"{name}.tif")
+    assert set(np.unique(ds["change_mask"].values)) <= {0, 1, 255}

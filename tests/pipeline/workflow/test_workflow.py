@@ -53,7 +53,7 @@ def test_small_workflow_runs(tmp_path, monkeypatch):
     summary = json.loads((tmp_path / "out" / "tiny.summary.json").read_text())
     assert [s["kind"] for s in summary] == ["synth", "detect", "evaluate"]
     assert summary[2]["result"]["changes"]["f_measure"] > 0.9
-    assert (tmp_path / "out" / "masks" / "change_mask.tif").exists()
+    assert (tmp_path / "out" / "masks" / "change_mask_reference.tif").exists()
 
 
 @pytest.mark.parametrize("flow, words", [
