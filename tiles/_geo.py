@@ -233,8 +233,8 @@ def write_spatial_coords(group, geo, shape: tuple[int, int]) -> list[str]:
     0) holding the CF grid mapping (:func:`cf_grid_mapping`), named in the
     ``grid_mapping`` and ``coordinates`` attributes of every array whose
     dimensions are ("y", "x") (``coordinates`` is how xarray keeps a scalar
-    coordinate), and a scalar ``sensor_frame`` named as the grid mapping of
-    every (row, col) array (:func:`_mark_sensor_frame`).  Then ``xr.open_zarr(store)`` has x/y coordinates and
+    coordinate), and, when the store has (row, col) arrays, a scalar
+    ``sensor_frame`` named as their grid mapping (:func:`_mark_sensor_frame`).  Then ``xr.open_zarr(store)`` has x/y coordinates and
     ``.rio.crs`` / ``.rio.transform()`` of rioxarray give the input's CRS and
     transform.  Call it before :func:`finalize_result_store` consolidates the
     metadata; existing ``x``, ``y``, ``spatial_ref`` arrays are replaced.
@@ -274,11 +274,14 @@ def write_spatial_coords(group, geo, shape: tuple[int, int]) -> list[str]:
         for _, array in group.arrays():
             if tuple(array.metadata.dimension_names or ()) == ("y", "x"):
                 array.attrs.update({"grid_mapping": "spatial_ref", "coordinates": "spatial_ref"})
-        written.append(_mark_sensor_frame(group))
+        sensor = [array for _, array in group.arrays()
+                  if tuple(array.metadata.dimension_names or ()) == ("row", "col")]
+        if sensor:
+            written.append(_mark_sensor_frame(group, sensor))
     return written
 
 
-def _mark_sensor_frame(group) -> str:
+def _mark_sensor_frame(group, arrays) -> str:
     """A scalar ``sensor_frame`` variable without CRS or transform, named as
     the grid mapping of every (row, col) array: xarray attaches the scalar
     ``spatial_ref`` coordinate to every array of the store, and rioxarray would
@@ -290,7 +293,6 @@ def _mark_sensor_frame(group) -> str:
     frame.attrs.update({"long_name": "sensor frame: the capture's pixels as the rolling shutter recorded them, "
                                      "warped against the ground by the camera's motion; no map coordinates",
                         "comment": "the ground frame (dims y, x) has them: see spatial_ref"})
-    for _, array in group.arrays():
-        if tuple(array.metadata.dimension_names or ()) == ("row", "col"):
-            array.attrs.update({"grid_mapping": "sensor_frame"})
+    for array in arrays:
+        array.attrs.update({"grid_mapping": "sensor_frame"})
     return "sensor_frame"
