@@ -153,7 +153,7 @@ def bench_ground(data, workdir, *, quick=False):
     references, incoming = write_night(work, scene, captures=captures, side=side, changes=8 if quick else 12)
     start = time.perf_counter()
     proc = _measured("-q", "survey", *references, "--captures", incoming / "*.tif", "-o", work / "out", "--json",
-                     "--no-report", codes=(0, 3))
+                     "--no-report", "--settle", "0", codes=(0, 3))
     seconds = time.perf_counter() - start
     summary = json.loads(proc.stdout)
     out = {"scene": source, "captures": [], "seconds": seconds, "failed": summary["failed"]}
