@@ -165,7 +165,7 @@ def _bench_blocks(workdir, *, size=512, workers=None):
         store = directory / f"{label.replace(' ', '_')}.zarr"
         detect(paths.reference, paths.distorted, store, config=config, workers=workers, overwrite=True)
         arrays = tiles.open_result_store(store)
-        mask, parallax = arrays["change_mask"][:] > 0, arrays["parallax_mask"][:] > 0
+        mask, parallax = arrays["change_mask"][:] == 1, arrays["parallax_mask"][:] == 1
         results[label] = {**_scores(store, directory), "objects": [
             {"kind": kind, "pixels": int(m.sum()), "recall": float(mask[m].mean()),
              "in_parallax": float(parallax[m].mean())} for kind, m in objects if kind != AWAY]}
