@@ -171,7 +171,7 @@ def bench_ground(data, workdir, *, quick=False):
         found = np.isfinite(dist["ground"])
         row = {"capture": Path(c["capture"]).name, "status": "done", "true_changes": len(dist["ground"]),
                "found": int(found.sum()), "polygons": c["changes"], "median_px": float(np.median(dist["ground"])),
-               "max_px_found": float(np.max(dist["ground"][found], initial=np.nan)),
+               "max_px_found": float(dist["ground"][found].max()) if found.any() else float("nan"),
                "median_px_capture_frame": float(np.median(dist["capture_frame"])), "agreement": agree}
         out["captures"].append(row)
         _echo(f"  {row['capture']}: {row['true_changes']} true changes ({row['found']} with a polygon), "
