@@ -189,27 +189,22 @@ def _same(a, b):
 
 def _join(observed):
     """Tonight's changes ``observed`` ([(geometry, capture)]) joined by the matching rule
-    (union-find over overlapping pairs): [(geometry, sorted captures)]."""
+    (connected components of the overlapping pairs): [(geometry, sorted captures)]."""
     import shapely
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
 
     if not observed:
         return []
     geoms = np.array([g for g, _ in observed], dtype=object)
-    parent = list(range(len(geoms)))
-
-    def root(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
     tree = shapely.STRtree(geoms)
-    for i, j in zip(*tree.query(geoms, predicate="intersects")):
-        if i < j and _same(geoms[i], geoms[j]):
-            parent[root(i)] = root(j)
+    pairs = np.array([(i, j) for i, j in zip(*tree.query(geoms, predicate="intersects"))
+                      if i < j and _same(geoms[i], geoms[j])], dtype=np.int64).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(geoms),) * 2)
+    _, labels = connected_components(graph, directed=False)
     groups = {}
-    for i in range(len(geoms)):
-        groups.setdefault(root(i), []).append(i)
+    for i, label in enumerate(labels):
+        groups.setdefault(label, []).append(i)
     return [(shapely.union_all([geoms[i] for i in members]), sorted({observed[i][1] for i in members}))
             for members in sorted(groups.values())]
 
