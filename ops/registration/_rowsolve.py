@@ -58,6 +58,19 @@ def _huber_value(r, delta):
 
 
 @numba.njit(**_JIT)
+def _residual(a, g, w):
+    """``g - a.T @ w`` over the poses with weight (float64, shape (n,))."""
+    r = np.empty(a.shape[1])
+    for j in range(a.shape[1]):
+        r[j] = g[j]
+    for k in range(a.shape[0]):
+        if w[k] > 0.0:
+            for j in range(a.shape[1]):
+                r[j] -= w[k] * a[k, j]
+    return r
+
+
+@numba.njit(**_JIT)
 def _psi(r, delta):
     if r > delta:
         return 2.0 * delta
@@ -283,13 +296,7 @@ def _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add, restrict
     neighbourhood) are then checked a few times per solve instead of at every
     iteration.  False: every iteration passes over every pose."""
     k_count, n = a.shape
-    r = np.empty(n)
-    for j in range(n):
-        r[j] = g[j]
-    for k in range(k_count):
-        if w[k] > 0.0:
-            for j in range(n):
-                r[j] -= w[k] * a[k, j]
+    r = _residual(a, g, w)
     grad = np.empty(k_count)
     work = np.zeros(k_count, dtype=np.bool_)
     part = np.full(n, 2, dtype=np.int8)
@@ -460,13 +467,7 @@ def _kkt(a, g, w, lam, delta):
     ``grad . (w - w*) <= grad . w + max(-grad)+ sum(w*)`` with
     ``lam sum(w*) <= objective`` (inf when ``lam`` is 0)."""
     k_count, n = a.shape
-    r = np.empty(n)
-    for j in range(n):
-        r[j] = g[j]
-    for k in range(k_count):
-        if w[k] > 0.0:
-            for j in range(n):
-                r[j] -= w[k] * a[k, j]
+    r = _residual(a, g, w)
     obj = _objective(r, w, lam, delta)
     grad = np.empty(k_count)
     _gradient(a, r, lam, delta, grad)
