@@ -68,6 +68,15 @@ SETTLE = 60.0
 SCHEMA_VERSION = 2
 STATUSES = ("running", "done", "failed")
 
+_FILES = """
+CREATE TABLE files (
+    path TEXT PRIMARY KEY,
+    size INTEGER NOT NULL,
+    mtime_ns INTEGER NOT NULL,
+    inode INTEGER NOT NULL,
+    sha256 TEXT NOT NULL,
+    shape TEXT NOT NULL
+)"""
 _SCHEMA = """
 CREATE TABLE runs (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -86,28 +95,11 @@ CREATE TABLE runs (
     outputs TEXT NOT NULL DEFAULT '{}'
 );
 CREATE INDEX runs_by_capture ON runs (capture, id);
-CREATE TABLE files (
-    path TEXT PRIMARY KEY,
-    size INTEGER NOT NULL,
-    mtime_ns INTEGER NOT NULL,
-    inode INTEGER NOT NULL,
-    sha256 TEXT NOT NULL,
-    shape TEXT NOT NULL
-);
 CREATE VIEW captures AS
     SELECT runs.* FROM runs
     JOIN (SELECT capture, MAX(id) AS id FROM runs GROUP BY capture) AS latest
     ON runs.id = latest.id;
-"""
-_FILES = """
-CREATE TABLE files (
-    path TEXT PRIMARY KEY,
-    size INTEGER NOT NULL,
-    mtime_ns INTEGER NOT NULL,
-    inode INTEGER NOT NULL,
-    sha256 TEXT NOT NULL,
-    shape TEXT NOT NULL
-)"""
+""" + _FILES + ";\n"
 _COLUMNS = ("id", "capture", "sha256", "key", "reference_paths", "reference_digest", "parameters",
             "version", "status", "reason", "night", "started", "finished", "outputs")
 
