@@ -48,6 +48,24 @@ def _wait_for(predicate, seconds=120.0):
         time.sleep(0.05)
 
 
+def _freeze(proc):
+    """Send SIGSTOP and wait until every thread of ``proc`` is stopped: the
+    signal is delivered asynchronously, so a thread may write for a moment after
+    ``send_signal`` returns."""
+    proc.send_signal(signal.SIGSTOP)
+
+    def stopped():
+        states = []
+        for stat in Path(f"/proc/{proc.pid}/task").glob("*/stat"):
+            try:
+                states.append(stat.read_text().rsplit(")", 1)[1].split()[0])
+            except (OSError, IndexError):
+                continue
+        return bool(states) and all(s in "Tt" for s in states)
+
+    _wait_for(stopped, 30.0)
+
+
 def _summary(out):
     return json.loads(sorted((out / "nights").glob("*.json"))[-1].read_text())
 
@@ -75,7 +93,7 @@ def test_a_second_survey_on_the_folder_changes_nothing(archive, tmp_path, capsys
                              stderr=subprocess.PIPE)
     try:
         _wait_for(lambda: (out / ".partial" / "building").exists() or first.poll() is not None)
-        first.send_signal(signal.SIGSTOP)
+        _freeze(first)
         before = _tree(out)
         assert main(args) == 2
         err = capsys.readouterr().err.strip().splitlines()
@@ -102,7 +120,7 @@ def test_two_detect_runs_on_one_store(geotiff_pair_files, tmp_path, capsys):
                              stderr=subprocess.PIPE)
     try:
         _wait_for(lambda: Path(f"{store}.partial").exists() or first.poll() is not None)
-        first.send_signal(signal.SIGSTOP)
+        _freeze(first)
         before = _tree(tmp_path)
         for extra in ([], ["--overwrite"]):
             assert main(args + extra) == 2
