@@ -17,10 +17,21 @@ absence of evidence.  So each capture pixel's model is an interval:
   inf)``, at 0 is ``(-inf, floor]``.
 
 A pixel is change only when the capture's interval lies outside the model's
-by the change rule (the gap between them soft-thresholded as eq. 13's
-``chi``); it carries **no evidence** (NaN) only where the intervals say
-nothing: its whole support clipped, or the capture clipped on the side the
-model is open (both say "at least as bright", or both "at most as dark").
+by the change rule.  In eq. 13's terms the two intervals bound the change
+term: ``chi = g - F w`` lies in ``[capture low - model high, capture high -
+model low]``, and the change term is the point of that interval nearest 0
+(the smallest change the data allow, as the l1 penalty picks it),
+soft-thresholded (:func:`optimal_chi`).  A pixel carries **no evidence**
+(NaN) only where that interval is the whole line, so that the data bound
+the change on neither side: the capture clipped on the side the model is
+open (both say only "at least this bright", or both "at most this dark"),
+or the model open on both sides (its support clipped at both ends),
+whatever the model's value at the clip levels.  Where the interval is
+bounded on one side and holds 0 (a capture saturated against a point model
+at or above saturation, an unclipped capture inside a half-open model, a
+whole support saturated under a brighter capture) the data are consistent
+with no change and rule out a change in one direction: 0, as for any
+consistent pixel.
 """
 
 import math
@@ -173,18 +184,13 @@ def bounded_score(capture, bounds, capture_high, capture_low, *, lambda_chi):
     up = np.nan_to_num(bounds.high_share) > TOUCH
     down = np.nan_to_num(bounds.low_share) > TOUCH
     cap_high, cap_low = np.asarray(capture_high, bool), np.asarray(capture_low, bool)
-    model_low = np.where(down, -np.inf, m)
-    model_high = np.where(up, np.inf, m)
-    cap_lo = np.where(cap_low, -np.inf, g)
-    cap_hi = np.where(cap_high, np.inf, g)
     with np.errstate(invalid="ignore"):
-        above = cap_lo - model_high  # the capture brighter than the model can be
-        below = model_low - cap_hi  # the capture darker than the model can be
-        gap = np.where(above > 0, above, np.where(below > 0, -below, 0.0))
-    known = np.isfinite(m) & np.isfinite(gap)
-    unclipped = 1.0 - np.nan_to_num(bounds.high_share) - np.nan_to_num(bounds.low_share)
-    silent = (gap == 0) & ((unclipped <= TOUCH) | (cap_high & up) | (cap_low & down))
+        # chi = g - F w lies in [capture low - model high, capture high - model low]
+        lowest = np.where(cap_low | up, -np.inf, g - m)
+        highest = np.where(cap_high | down, np.inf, g - m)
+        gap = np.where(lowest > 0, lowest, np.where(highest < 0, highest, 0.0))  # its point nearest 0
+    silent = (cap_low | up) & (cap_high | down)  # the whole line: the data bound chi on neither side
+    take = np.isfinite(m) & np.isfinite(g) & ~silent
     chi = np.full(m.shape, np.nan, np.float32)
-    take = known & ~silent
     chi[take] = optimal_chi(gap[take], lambda_chi=lambda_chi)
     return chi

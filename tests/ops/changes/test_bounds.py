@@ -64,6 +64,38 @@ def test_no_evidence_only_where_the_intervals_say_nothing():
     assert np.isnan(chi[0, 0]) and chi[0, 1] == 0.0 and np.isnan(chi[0, 2])
 
 
+def test_no_evidence_exactly_where_chi_is_unbounded_both_ways():
+    """eq. 13's change term lies in [capture low - model high, capture high -
+    model low]: no evidence only where that is the whole line, whatever the
+    model's value at the clip levels; elsewhere the point nearest 0,
+    soft-thresholded."""
+    lam = 0.02
+    # capture saturated (1.0) against models open upwards, from far below to above saturation: chi unbounded
+    g = np.ones((1, 3), np.float32)
+    chi = ops.bounded_score(g, _bounds([[0.3, 0.99, 1.2]], high=0.2), np.ones(g.shape, bool),
+                            np.zeros(g.shape, bool), lambda_chi=lam)
+    assert np.isnan(chi).all()
+    # capture at 0 against models open downwards: the same, mirrored
+    g = np.zeros((1, 3), np.float32)
+    chi = ops.bounded_score(g, _bounds([[0.0, 0.05, 0.6]], low=0.2), np.zeros(g.shape, bool),
+                            np.ones(g.shape, bool), lambda_chi=lam)
+    assert np.isnan(chi).all()
+    # a model open both ways says nothing, whatever the capture
+    g = np.array([[0.0, 0.5, 1.0]], np.float32)
+    chi = ops.bounded_score(g, _bounds([[0.5, 0.5, 0.5]], high=0.3, low=0.3), g >= 1.0, g <= 0.0, lambda_chi=lam)
+    assert np.isnan(chi).all()
+    # a whole support saturated (model [0.8, inf)) under a brighter unclipped capture: chi in (-inf, 0.1], holds
+    # 0 (consistent, and rules out a brightening); under a darker one: chi in (-inf, -0.3], change
+    g = np.array([[0.9, 0.5]], np.float32)
+    none = np.zeros(g.shape, bool)
+    chi = ops.bounded_score(g, _bounds([[0.8, 0.8]], high=1.0), none, none, lambda_chi=lam)
+    np.testing.assert_allclose(chi, [[0.0, -(0.3 - lam / 2)]], atol=1e-6)
+    # a saturated capture against a point model: chi in [1 - m, inf)
+    g = np.ones((1, 2), np.float32)
+    chi = ops.bounded_score(g, _bounds([[0.995, 0.7]]), np.ones(g.shape, bool), none, lambda_chi=lam)
+    np.testing.assert_allclose(chi, [[0.0, 0.3 - lam / 2]], atol=1e-6)
+
+
 def _scene(shape, seed):
     return (0.1 + 0.6 * ops.aerial_scene(shape, seed=seed)).astype(np.float32)
 
