@@ -14,10 +14,13 @@ sensor clips it again.  Both are written as 8-bit GeoTIFFs.
 Printed: F, precision and recall of ``rsmb detect`` (defaults), recall on the
 objects pasted on clipped areas, the share of pixels with no evidence (NaN
 score) among those whose whole exposure sees the reference (beyond the image
-border), wall seconds; and OpenCV DIS dense flow (medium preset) on the same
-pair in the same run, its residual turned into a mask by rsmb's own change
-rule (the soft-threshold, the interpolation allowance, the noise threshold,
-components) on the common intensity scale rsmb chose.
+border), how much of it is capture pixels clipped on the side their model is
+open (eq. 13's ``chi`` unbounded both ways) and, of those, how many have a
+model at that clip level too (within ``lambda_chi / 2``), wall seconds; and
+OpenCV DIS dense flow (medium preset) on the same pair in the same run, its
+residual turned into a mask by rsmb's own change rule (the soft-threshold,
+the interpolation allowance, the noise threshold, components) on the common
+intensity scale rsmb chose.
 """
 
 import shutil
@@ -284,6 +287,15 @@ def bench_realclip(data, workdir, *, size=4096, workers=None):
            "no_evidence": float(np.isnan(score).mean()), "seconds": seconds, "cpu_seconds": cpu,
            "registered_nan_beyond_border": float(np.isnan(group["registered"][:][pair.covered]).mean()),
            "no_evidence_summary": summary.no_evidence}
+    # why: a clipped capture pixel with a model (registered) and no evidence is clipped on the side its model is
+    # open (chi unbounded both ways, ops.changes._bounds); the rest have no model (e.g. failed rows)
+    clipped_capture = (pair.capture == 0) | (pair.capture == 255)
+    registered = group["registered"][:]
+    silent = np.isnan(score) & clipped_capture & np.isfinite(registered)
+    level = np.where(pair.capture == 255, 1.0, 0.0)
+    at_level = np.abs(registered - level) * factor <= 0.01  # lambda_chi / 2 on the common scale
+    out["no_evidence_clipped_same_side"] = float(silent[pair.covered].mean())
+    out["no_evidence_model_at_clip"] = float((silent & at_level)[pair.covered].mean())
     t = time.perf_counter()
     reference = pair.reference.astype(np.float32) / 255.0
     capture = pair.capture.astype(np.float32) / 255.0
@@ -297,7 +309,9 @@ def bench_realclip(data, workdir, *, size=4096, workers=None):
           f"% of the reference and {100 * out['capture_clipped']:.1f} % of the capture clipped; {pair.objects} new "
           f"objects, {pair.objects_on_clipped} on clipped areas): rsmb F {c.f_measure:.3f} (P {c.precision:.3f}, "
           f"R {c.recall:.3f}), recall on the objects on clipped areas {out['recall_on_clipped']:.3f}, no evidence "
-          f"{100 * out['no_evidence_beyond_border']:.2f} % of the pixels beyond the border "
+          f"{100 * out['no_evidence_beyond_border']:.2f} % of the pixels beyond the border, of which "
+          f"{100 * out['no_evidence_clipped_same_side']:.2f} % clipped in the capture on the side their model is open "
+          f"({100 * out['no_evidence_model_at_clip']:.2f} % with the model at that clip level) "
           f"({100 * out['no_evidence']:.2f} % of all; registered NaN on {100 * out['registered_nan_beyond_border']:.2f} % "
           f"beyond the border), {seconds:.1f} s ({cpu:.1f} CPU-s); DIS dense flow (medium) with rsmb's change "
           f"rule F {d.f_measure:.3f} (P {d.precision:.3f}, R {d.recall:.3f}, recall on clipped areas "
