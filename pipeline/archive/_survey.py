@@ -458,40 +458,14 @@ def _run_all(ledger, todo, out, references, config, run, stop):
             if stop.event.is_set() and deadline is None:
                 interrupted = True
                 deadline = time.monotonic() + stop.grace
-                cancelled = [f for f in pending if f.cancel()]
-                for future in cancelled:
-                    capture, name, run_id, why = futures[future]
-                    reason = f"not run: the night was stopped ({stop.why}); it runs next night"
-                    ledger.finish(run_id, "failed", f"interrupted before it ran ({stop.why})")
-                    results[capture] = CaptureResult(str(capture), "skipped", reason)
-                pending -= set(cancelled)
-                log.warning("survey: %s: %d queued capture(s) cancelled, %d running get %g s to finish", stop.why,
-                            len(cancelled), len(pending), stop.grace)
+                pending -= _cancel_queued(ledger, futures, pending, stop, results)
             if deadline is not None and time.monotonic() >= deadline:
-                stop.abandoned.set()
-                for future in pending:
-                    capture, name, run_id, why = futures[future]
-                    results[capture] = _fail(ledger, run_id, capture, InputError(
-                        f"{capture}: interrupted while running ({stop.why}): it runs again next night"), None)
-                log.warning("survey: %d running capture(s) abandoned", len(pending))
+                _abandon(ledger, futures, pending, stop, results)
                 break
             done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
             for future in done:
                 count += 1
-                capture, name, run_id, why = futures[future]
-                try:
-                    result = future.result()
-                except ops.RunError:
-                    raise  # the night cannot go on (every worker gone): not one capture's fault
-                except Exception as exc:  # noqa: BLE001 - one bad capture never stops the night
-                    results[capture] = _fail(ledger, run_id, capture, exc, None)
-                    log.error("survey [%d/%d] %s: failed: %s", count, total, name, results[capture].reason)
-                    continue
-                result = dataclasses.replace(result, reason=why)
-                ledger.finish(run_id, "done", why, tiles.jsonable(result))
-                results[capture] = result
-                log.info("survey [%d/%d] %s: done in %.1f s, %d change(s)", count, total, name, result.seconds,
-                         result.changes)
+                _record(ledger, futures[future], future, f"[{count}/{total}]", results)
     except BaseException:
         driver.shutdown(wait=False, cancel_futures=True)
         stop.abandoned.set()
@@ -502,6 +476,51 @@ def _run_all(ledger, todo, out, references, config, run, stop):
         driver.shutdown(wait=True)
         stack.close()
     return results
+
+
+def _cancel_queued(ledger, futures, pending, stop, results):
+    """A stopped night's captures still queued cancelled: each ``skipped``
+    (it runs next night), its attempt closed ``failed``.  Returns the
+    cancelled futures."""
+    cancelled = {f for f in pending if f.cancel()}
+    for future in cancelled:
+        capture, name, run_id, why = futures[future]
+        reason = f"not run: the night was stopped ({stop.why}); it runs next night"
+        ledger.finish(run_id, "failed", f"interrupted before it ran ({stop.why})")
+        results[capture] = CaptureResult(str(capture), "skipped", reason)
+    log.warning("survey: %s: %d queued capture(s) cancelled, %d running get %g s to finish", stop.why,
+                len(cancelled), len(pending) - len(cancelled), stop.grace)
+    return cancelled
+
+
+def _abandon(ledger, futures, pending, stop, results):
+    """The captures still running when a stopped night's grace ran out: set
+    abandoned (they place nothing after) and recorded ``failed``."""
+    stop.abandoned.set()
+    for future in pending:
+        capture, name, run_id, why = futures[future]
+        results[capture] = _fail(ledger, run_id, capture, InputError(
+            f"{capture}: interrupted while running ({stop.why}): it runs again next night"), None)
+    log.warning("survey: %d running capture(s) abandoned", len(pending))
+
+
+def _record(ledger, entry, future, progress, results):
+    """A finished capture's future recorded in the ledger and ``results``:
+    ``done`` with its reason, or ``failed`` with its error; a
+    :class:`~rsmb.ops.RunError` (every worker gone) ends the night."""
+    capture, name, run_id, why = entry
+    try:
+        result = future.result()
+    except ops.RunError:
+        raise  # the night cannot go on (every worker gone): not one capture's fault
+    except Exception as exc:  # noqa: BLE001 - one bad capture never stops the night
+        results[capture] = _fail(ledger, run_id, capture, exc, None)
+        log.error("survey %s %s: failed: %s", progress, name, results[capture].reason)
+        return
+    result = dataclasses.replace(result, reason=why)
+    ledger.finish(run_id, "done", why, tiles.jsonable(result))
+    results[capture] = result
+    log.info("survey %s %s: done in %.1f s, %d change(s)", progress, name, result.seconds, result.changes)
 
 
 def _fail(ledger, run_id, capture, exc, seconds):

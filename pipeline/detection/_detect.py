@@ -351,10 +351,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
     """
     t_start = time.perf_counter()
     config = config or DetectConfig()
-    references = [os.path.abspath(r) for r in tiles.expand_references(
-        [reference] if isinstance(reference, (str, os.PathLike)) else reference)]
-    distorted, output = os.path.abspath(distorted), os.path.abspath(output)
-    geotiff = None if geotiff is None else os.path.abspath(geotiff)
+    references, distorted, output, geotiff = _absolute(reference, distorted, output, geotiff)
     plan = _plan(references, distorted, output, config)
     if resume:
         done = _finished(output, plan.key)
@@ -373,38 +370,12 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
         try:
             own = open_runner(scheduler, workers=workers, worker_timeout=worker_timeout) if runner is None else None
             with own or contextlib.nullcontext(runner) as shared:
-                runner = _Counted(shared)
-                shape, grid = plan.shape, plan.grid
-                log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", plan.distorted.path, shape[0],
-                         shape[1], len(grid), grid.tile, grid.halo,
+                log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", plan.distorted.path,
+                         plan.shape[0], plan.shape[1], len(plan.grid), plan.grid.tile, plan.grid.halo,
                          getattr(shared, "describe", lambda: scheduler)())
-                run = _ingest(runner, group, run, plan, timings)
-                slow_stage(runner, group, run, plan, timings)
-                plan = plan.for_rows(group["work/slow"][:])  # the halo the rows need, the slow part known
-                if plan.grid.halo != grid.halo:
-                    log.info("halo %d px for the rows (the slow part found needs no more)", plan.grid.halo)
-                grid = plan.grid
-                tile_stages = _register_tiles(runner, group, run, plan, resume, timings)
-                fused, hist, gains, agree, resolve = _fuse_paths(runner, group, run, plan, timings)
-                threshold, changed, components, silent = _change_masks(runner, run, plan, fused, hist, timings)
-                tasks_per_tile = runner.tasks / len(grid)
-                timings["cpu_s"] = _cpu_stages(runner, tile_stages)
+                plan, run, found = _stages(_Counted(shared), group, run, plan, resume, timings)
             timings["total_s"] = time.perf_counter() - t_start
-            result = DetectResult(
-                output=str(output), shape=list(shape), tiles=list(grid.grid_shape), tile_size=grid.tile,
-                halo=grid.halo, threshold=threshold, changed_pixels=int(changed),
-                changed_fraction=changed / float(shape[0] * shape[1]), components=components,
-                gain_min=float(np.nanmin(gains)), gain_max=float(np.nanmax(gains)),
-                resolved_tiles=[list(t) for t in resolve],
-                tile_agreement_px_max=float(np.nanmax(agree)) if np.isfinite(agree).any() else None,
-                tasks_per_tile=tasks_per_tile, megapixels_per_s=shape[0] * shape[1] / 1e6 / timings["total_s"],
-                timings=timings, pairing=plan.pairing.mode,
-                reference_coverage=None if plan.pairing.coverage is None else plan.pairing.coverage.fraction,
-                failed_rows=int((group["tile_row_state"][:] == 3).sum()),
-                clipped_reference=run.intensity.reference_clipped, clipped_capture=run.intensity.capture_clipped,
-                no_evidence=silent / float(shape[0] * shape[1]),
-                parallax_components=len(_tasks.layer_components(group)),
-                parallax_pixels=int(sum(c["pixels"] for c in _tasks.layer_components(group))))
+            result = _result(group, run, plan, found, timings)
             _finish(group, store, plan, result, scheduler, overwrite, geotiff)
             return result
         except BaseException as error:
@@ -412,3 +383,64 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
             if isinstance(error, InputError) or not _tasks.resume_safe(group):
                 tiles.abort_result_store(store)
             raise
+
+
+def _absolute(reference, distorted, output, geotiff):
+    """The run's paths made absolute (a dask worker may run in another working
+    directory): the reference files (a mosaic's expanded), the capture, the
+    store and the GeoTIFF folder (None stays None)."""
+    references = [os.path.abspath(r) for r in tiles.expand_references(
+        [reference] if isinstance(reference, (str, os.PathLike)) else reference)]
+    return (references, os.path.abspath(distorted), os.path.abspath(output),
+            None if geotiff is None else os.path.abspath(geotiff))
+
+
+@dataclasses.dataclass(frozen=True)
+class _Found:
+    """What stages 2 to 5 found, for :class:`DetectResult`."""
+
+    threshold: float
+    changed: int
+    components: int
+    silent: int
+    gains: np.ndarray
+    agree: np.ndarray
+    resolve: list
+    tasks_per_tile: float
+
+
+def _stages(runner, group, run, plan, resume, timings):
+    """Stages 2 to 5 on ``runner`` (a :class:`_Counted`), in order: the plan
+    with the halo the rows need, the run store, and a :class:`_Found`."""
+    run = _ingest(runner, group, run, plan, timings)
+    slow_stage(runner, group, run, plan, timings)
+    halo = plan.grid.halo
+    plan = plan.for_rows(group["work/slow"][:])  # the halo the rows need, the slow part known
+    if plan.grid.halo != halo:
+        log.info("halo %d px for the rows (the slow part found needs no more)", plan.grid.halo)
+    tile_stages = _register_tiles(runner, group, run, plan, resume, timings)
+    fused, hist, gains, agree, resolve = _fuse_paths(runner, group, run, plan, timings)
+    threshold, changed, components, silent = _change_masks(runner, run, plan, fused, hist, timings)
+    found = _Found(threshold, changed, components, silent, gains, agree, resolve, runner.tasks / len(plan.grid))
+    timings["cpu_s"] = _cpu_stages(runner, tile_stages)
+    return plan, run, found
+
+
+def _result(group, run, plan, found, timings):
+    """The run's :class:`DetectResult` from what its stages found."""
+    shape, grid, pixels = plan.shape, plan.grid, float(plan.shape[0] * plan.shape[1])
+    layers = _tasks.layer_components(group)
+    return DetectResult(
+        output=str(plan.output), shape=list(shape), tiles=list(grid.grid_shape), tile_size=grid.tile,
+        halo=grid.halo, threshold=found.threshold, changed_pixels=int(found.changed),
+        changed_fraction=found.changed / pixels, components=found.components,
+        gain_min=float(np.nanmin(found.gains)), gain_max=float(np.nanmax(found.gains)),
+        resolved_tiles=[list(t) for t in found.resolve],
+        tile_agreement_px_max=float(np.nanmax(found.agree)) if np.isfinite(found.agree).any() else None,
+        tasks_per_tile=found.tasks_per_tile, megapixels_per_s=pixels / 1e6 / timings["total_s"],
+        timings=timings, pairing=plan.pairing.mode,
+        reference_coverage=None if plan.pairing.coverage is None else plan.pairing.coverage.fraction,
+        failed_rows=int((group["tile_row_state"][:] == 3).sum()),
+        clipped_reference=run.intensity.reference_clipped, clipped_capture=run.intensity.capture_clipped,
+        no_evidence=found.silent / pixels, parallax_components=len(layers),
+        parallax_pixels=int(sum(c["pixels"] for c in layers)))
