@@ -15,25 +15,15 @@ import cv2
 import numpy as np
 
 from .._camera import Camera
-from .._forward import CameraPath, render
+from .._forward import render
 from ._layered import Structure, _at_depth, raise_structures, render_layered, with_roofs
 from ._scene import aerial_scene
-from ._synth import SyntheticPair, _margin
+from ._synth import SyntheticPair, _margin, readout_path
 
 __all__ = []
 
 #: Kinds of object, in the order of :func:`raised_pair`'s ``objects``.
 ON_ROOF, AGAINST_BLOCK, AWAY = "on a roof", "against a block", "away from the blocks"
-
-
-def raised_path(height, exposure, *, tx=(15.0, 19.0), ty=(3.0, 6.0), rz=(-0.5, 0.5)):
-    """A readout of ``height`` rows with linear tx, ty (px) and rz (deg)."""
-    duration = height + exposure + 1.0
-    t = np.linspace(0.0, duration, 64)
-    poses = np.zeros((t.size, 6))
-    for k, (a, b) in ((0, tx), (1, ty), (5, rz)):
-        poses[:, k] = a + (b - a) * t / duration
-    return CameraPath(t, poses)
 
 
 def raised_pair(shape=(512, 512), *, seed=7, blocks=4, away=3, depths=(0.5, 0.8), block_size=(40, 64),
@@ -67,7 +57,7 @@ def raised_pair(shape=(512, 512), *, seed=7, blocks=4, away=3, depths=(0.5, 0.8)
     height, width = int(shape[0]), int(shape[1])
     rng = np.random.default_rng(seed)
     camera = Camera.for_shape(shape)
-    path = raised_path(height, exposure)
+    path = readout_path(height, exposure, tx=(15.0, 19.0), ty=(3.0, 6.0), rz=(-0.5, 0.5))
     margin = _margin(path, camera, shape)
     scene = (0.05 + 0.7 * aerial_scene((height + 2 * margin, width + 2 * margin), seed=seed)).astype(np.float32)
     raised = raise_structures(scene, count=blocks, depths=depths, size_range=block_size, seed=seed + 3,

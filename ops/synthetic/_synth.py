@@ -101,6 +101,38 @@ def motion_path(motion, *, duration, seed, scale=1.0):
     return CameraPath(times, poses)
 
 
+def readout_path(height, exposure, *, phase=0.3, **axes):
+    """A camera path over one readout of ``height`` rows.
+
+    Parameters
+    ----------
+    height : int
+        Rows of the capture.
+    exposure : float
+        Row exposure, in row periods: the path covers ``height + exposure + 1``
+        row periods.
+    phase : float
+        Radians between the wobbles of successive pose axes.
+    **axes : tuple of float
+        Per axis of :data:`POSE_AXES` (px or degrees): ``(start, end)``, linear
+        in time, or ``(start, end, amplitude)`` with a sine wobble of that
+        amplitude (0.7 periods over the readout) on top.  Other axes are zero.
+
+    Returns
+    -------
+    CameraPath
+    """
+    duration = height + exposure + 1.0
+    t = np.linspace(0.0, duration, 64)
+    poses = np.zeros((t.size, 6))
+    for name, value in axes.items():
+        k = POSE_AXES.index(name)
+        poses[:, k] = value[0] + (value[1] - value[0]) * t / duration
+        if len(value) > 2:
+            poses[:, k] += value[2] * np.sin(2 * np.pi * 0.7 * t / duration + phase * k)
+    return CameraPath(t, poses)
+
+
 def _margin(path, camera, shape):
     """Pixels by which the path moves the frame's corners, at most."""
     h, w = shape

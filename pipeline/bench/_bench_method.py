@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from rsmb import ops
+from rsmb.ops.synthetic._synth import readout_path
 
 from ._archive import CaptureSpec, write_capture, write_reference
 from ..detection._detect import detect
@@ -38,21 +39,6 @@ EXPOSURE = 32.0  # row periods
 
 def _echo(text):
     print(text, flush=True)
-
-
-def readout_path(height, exposure, **axes):
-    """A camera path over one readout of ``height`` rows: per axis of
-    :data:`ops.POSE_AXES` (start, end) linear in time, or (start, end,
-    amplitude) with a wobble of that amplitude on top."""
-    duration = height + exposure + 1.0
-    t = np.linspace(0.0, duration, 64)
-    poses = np.zeros((t.size, 6))
-    for name, value in axes.items():
-        k = ops.POSE_AXES.index(name)
-        poses[:, k] = value[0] + (value[1] - value[0]) * t / duration
-        if len(value) > 2:
-            poses[:, k] += value[2] * np.sin(2 * np.pi * 0.7 * t / duration + 0.3 * k)
-    return ops.CameraPath(t, poses)
 
 
 def _scores(store, truth):

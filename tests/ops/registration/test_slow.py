@@ -8,30 +8,18 @@ import pytest
 
 from rsmb import ops
 from rsmb.ops.registration import _slow
+from rsmb.ops.synthetic._synth import readout_path
 
 SHAPE = (384, 384)
 EXPOSURE = 24.0
-
-
-def _path(**axes):
-    """A camera path over one readout: per axis (start, end) linear, or (start,
-    end, amplitude) with a wobble on top."""
-    duration = SHAPE[0] + EXPOSURE + 1.0
-    t = np.linspace(0.0, duration, 64)
-    poses = np.zeros((t.size, 6))
-    for name, value in axes.items():
-        k = ops.POSE_AXES.index(name)
-        poses[:, k] = value[0] + (value[1] - value[0]) * t / duration
-        if len(value) > 2:
-            poses[:, k] += value[2] * np.sin(2 * np.pi * 0.7 * t / duration + k)
-    return ops.CameraPath(t, poses)
 
 
 YAW_PITCH = dict(rx=(-2.5, 2.0), ry=(2.5, -2.0), tx=(-4.0, 4.0, 2.0), ty=(0.0, 5.0), rz=(-1.0, 1.0))
 
 
 def _pair(seed=3, changes=6, **axes):
-    return ops.synthesize_pair(SHAPE, path=_path(**axes), exposure=EXPOSURE, changes=changes, noise=0.002,
+    path = readout_path(SHAPE[0], EXPOSURE, phase=1.0, **axes)  # the axes' wobbles a radian apart
+    return ops.synthesize_pair(SHAPE, path=path, exposure=EXPOSURE, changes=changes, noise=0.002,
                                seed=seed, interpolation="cubic")
 
 
