@@ -248,14 +248,28 @@ def change_score(chi, registered, *, params=ChangeParams()):
     score = np.abs(np.asarray(chi, dtype=np.float32))
     if params.interpolation <= 0:
         return score
-    image = np.nan_to_num(np.asarray(registered, dtype=np.float32))
-    allowance = np.zeros_like(image)
-    for kernel in (_SECOND_DIFFERENCE, _SECOND_DIFFERENCE.T):
-        allowance += np.abs(cv2.filter2D(image, cv2.CV_32F, kernel, borderType=cv2.BORDER_REPLICATE))
+    allowance = _second_differences(np.asarray(registered, dtype=np.float32))
     return np.maximum(score - np.float32(params.interpolation) * allowance, np.float32(0.0))
 
 
-_SECOND_DIFFERENCE = np.array([[1.0, -2.0, 1.0]], np.float32)
+def _second_differences(image):
+    """``|f_xx| + |f_yy|`` of ``image`` (3-pixel second differences), a
+    neighbour beyond the image or unknown (NaN: a hole in the model, a
+    failed row) replaced by the pixel itself, as the image's borders are
+    replicated; 0 where the pixel itself is unknown.  (Taking unknown as 0
+    would give the pixels around every hole an allowance of their own value
+    and hide their changes.)"""
+    known = np.isfinite(image)
+    centre = np.where(known, image, np.float32(0.0))
+    total = np.zeros(image.shape, np.float32)
+    for axis in (0, 1):
+        padded = np.pad(image, [(1, 1) if a == axis else (0, 0) for a in (0, 1)], mode="edge")
+        before = padded[:-2] if axis == 0 else padded[:, :-2]
+        after = padded[2:] if axis == 0 else padded[:, 2:]
+        before = np.where(np.isfinite(before), before, centre)
+        after = np.where(np.isfinite(after), after, centre)
+        total += np.abs(before - 2 * centre + after)
+    return np.where(known, total, np.float32(0.0))
 
 
 def change_candidates(score, threshold, *, params=ChangeParams()):

@@ -393,6 +393,25 @@ def test_interpolation_allowance_does_not_hide_a_misregistration():
     assert change_score(chi, registered).max() > 0.1
 
 
+def test_a_hole_in_the_model_is_a_border_not_a_dark_pixel():
+    """The allowance next to unknown model pixels (a failed row, a hole) is
+    the allowance at an image border (the pixel replicated), not a second
+    difference against 0, which would hide a change beside every hole."""
+    scene = _sharp_scene()
+    registered, _ = _rendered(scene, 0.5, 1, False)
+    capture, truth = _rendered(scene, 0.5, 3, True)
+    chi = optimal_chi(capture - registered, lambda_chi=0.02)
+    holed = registered.copy()
+    holed[80] = np.nan  # a failed row through the new object
+    holed[:, 30:34] = np.nan  # and a hole of columns
+    score = change_score(chi, holed)
+    # each side of a hole is scored as that side alone would be, its rows (columns) next to the hole a border
+    np.testing.assert_allclose(score[81:, 34:], change_score(chi[81:, 34:], registered[81:, 34:]), atol=1e-6)
+    np.testing.assert_allclose(score[:80, :30], change_score(chi[:80, :30], registered[:80, :30]), atol=1e-6)
+    # the new object keeps its score on the rows beside the failed one (on a flat surround, the full |chi|)
+    np.testing.assert_allclose(score[[79, 81], 74:86], np.abs(chi[[79, 81], 74:86]), rtol=1e-6)
+
+
 def test_model_values_are_the_registered_image_anywhere():
     """The model at pixels the registration did not fit (e.g. clipped ones)
     is what the registered image holds where it did."""
