@@ -201,14 +201,22 @@ def test_resume_refuses_other_parameters(tmp_path, small_pair_files):
         detect(ref, dist, store, resume=True)
 
 
-@pytest.mark.parametrize("scheduler", ["processes", "synchronous"])
-def test_local_schedulers_agree(tmp_path, small_pair_files, scheduler):
+@pytest.fixture(scope="module")
+def threads_store(tmp_path_factory, small_pair_files):
+    """The small pair in 128-px tiles on the default (threads) scheduler."""
     _, ref, dist = small_pair_files
-    a, b = tmp_path / "a.zarr", tmp_path / "b.zarr"
-    detect(ref, dist, a, config=DetectConfig(tile=128))
+    store = tmp_path_factory.mktemp("threads") / "a.zarr"
+    detect(ref, dist, store, config=DetectConfig(tile=128))
+    return read_store(store)[0]
+
+
+@pytest.mark.parametrize("scheduler", ["processes", "synchronous"])
+def test_local_schedulers_agree(tmp_path, small_pair_files, threads_store, scheduler):
+    _, ref, dist = small_pair_files
+    b = tmp_path / "b.zarr"
     detect(ref, dist, b, config=DetectConfig(tile=128), scheduler=scheduler, workers=2)
     for name in ("change_mask", "registered", "trajectory"):
-        np.testing.assert_array_equal(read_store(a)[0][name], read_store(b)[0][name])
+        np.testing.assert_array_equal(threads_store[name], read_store(b)[0][name])
 
 
 def test_store_opens_with_coordinates_and_crs(tmp_path, geotiff_pair_files):
