@@ -131,18 +131,78 @@ def _refine_start(solver, center, rows, uncertainty, iterations=2, stride=None):
     for the coarse search's spacing, lattice steps ``stride`` times the
     parameters' steps, default :meth:`_RowProblem.rotation_stride`); returns the
     block's centroid, the blur extent per axis and the cost."""
-    params = solver.params
-    steps = np.asarray(params.step) * (solver.problem.rotation_stride() if stride is None else stride)
-    coarse_hw = np.maximum(np.maximum(np.asarray(params.half_width) + steps, 4 * steps),
-                           np.ceil(np.asarray(uncertainty) / steps) * steps + 2 * steps)
-    space = PoseSpace(params.axes, tuple(coarse_hw), tuple(steps))
+    return _refine(solver, center, rows, uncertainty, iterations, stride)[:3]
+
+
+def _refine(solver, center, rows, uncertainty, iterations, stride, warm=None):
+    """:func:`_refine_start`, also returning the last solve's poses with
+    weight and their weights (None when nothing had weight).
+
+    Each solve after the first starts from the weights of the one before; the
+    first from ``warm`` (such a (poses, weights) pair) or else from the
+    block's solve on a lattice twice as coarse.  Eq. 13 is convex: the start
+    changes the work, not the optimum the solver converges to."""
+    space = _block_space(solver, uncertainty, stride)
+    grid = None
     for _ in range(iterations):
-        _, poses, w, _, _ = solver.solve(rows, space, center)
+        # the grid is centred on the lattice point nearest the centre: when the
+        # last centroid snaps to the same point, the next solve would be the
+        # same problem, whose answer is in hand
+        if grid is not None and np.array_equal(space.snap(center), grid):
+            break
+        grid = space.snap(center)
+        if warm is None:
+            warm = _coarse_weights(solver, rows, space, center)
+        w0 = None if warm is None else _carried(warm, space, grid)
+        _, poses, w, _, _ = solver.solve(rows, space, center, w0)
+        cost = solver.last_cost
         c = _centroid(poses, w)
         if c is None:
-            return center, np.zeros_like(center), np.inf
+            return center, np.zeros_like(center), np.inf, None
         center = c
-    return center, _spread(poses, w, center), solver.last_cost
+        keep = w > 0
+        warm = (poses[keep], w[keep])
+    return center, _spread(poses, w, center), cost, warm
+
+
+def _block_space(solver, uncertainty, stride=None):
+    """The pose space of a block solve around a pose known to within
+    ``uncertainty`` per axis: lattice steps ``stride`` times the parameters'
+    (default :meth:`_RowProblem.rotation_stride`), half-widths wide enough for
+    the row neighbourhood and the uncertainty, at least four steps."""
+    params = solver.params
+    steps = np.asarray(params.step) * (solver.problem.rotation_stride() if stride is None else stride)
+    half = np.maximum(np.maximum(np.asarray(params.half_width) + steps, 4 * steps),
+                      np.ceil(np.asarray(uncertainty) / steps) * steps + 2 * steps)
+    return PoseSpace(params.axes, tuple(half), tuple(steps))
+
+
+def _coarse_weights(solver, rows, space, center):
+    """The block's weights on the lattice twice as coarse as ``space``'s on
+    every axis (an eighth of the poses with three axes), as a start for the
+    solve on ``space``: from it the active-set solver reaches the full
+    lattice's support in fewer passes over all its poses than from zero.
+    (poses, weights) with weight, or None."""
+    coarse = PoseSpace(space.axes, space.half_width, tuple(2 * np.asarray(space.step)))
+    _, poses, w, _, _ = solver.solve(rows, coarse, center)
+    keep = w > 0
+    return (poses[keep], w[keep]) if keep.any() else None
+
+
+def _carried(warm, space, grid):
+    """Weights ``warm`` = (poses (n, D), weights (n,)) on the grid of ``space``
+    centred at lattice index ``grid``: each pose's weight at the grid point
+    equal to it, poses off the grid's lattice or outside it dropped (a start
+    for the solver, which needs none of them)."""
+    poses, weights = warm
+    index = poses / np.asarray(space.step)
+    on = np.abs(index - np.rint(index)).max(axis=1) < 1e-6
+    counts = np.asarray(space.counts)
+    local = np.rint(index[on]).astype(np.int64) - grid + counts // 2
+    inside = ((local >= 0) & (local < counts)).all(axis=1)
+    w0 = np.zeros(space.size)
+    w0[np.ravel_multi_index(local[inside].T, tuple(counts))] = weights[on][inside]
+    return w0
 
 
 def _choose_start(solver, start, rows):
@@ -159,13 +219,13 @@ def _choose_start(solver, start, rows):
     coarsened = coarse != solver.problem.rotation_stride()  # per axis
     best = None
     for center in candidates:
-        refined = _refine_start(solver, np.asarray(center, dtype=np.float64), rows, uncertainty, iterations=1,
-                                stride=coarse)
+        refined = _refine(solver, np.asarray(center, dtype=np.float64), rows, uncertainty, 1, coarse)
         if best is None or refined[2] < best[2]:
             best = refined
     if (len(candidates) > 1 or coarsened.any()) and np.isfinite(best[2]):
         known = np.where(coarsened, np.asarray(solver.params.step) * coarse, uncertainty)
-        best = _refine_start(solver, best[0], rows, known, iterations=1)
+        # from the winner's weights: its coarse lattice lies on the full one
+        best = _refine(solver, best[0], rows, known, 1, None, warm=best[3])
     return best[0], best[1]
 
 

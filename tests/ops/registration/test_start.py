@@ -1,0 +1,100 @@
+"""The start search's block solves: started warm (from a lattice twice as
+coarse, from the solve before, from the winning candidate) they reach the
+optimum a cold start reaches, with fewer full solves."""
+
+import numpy as np
+import pytest
+
+from rsmb import ops
+from rsmb.ops.registration._rowproblem import _centroid, _RowProblem, _shift_margin, _Solver
+from rsmb.ops.registration._start import _block_space, _carried, _choose_start, _refine, _refine_start
+
+
+def _solver(seed=3, size=192):
+    """A block-solve setting on a synthetic in-plane pair (automatic steps),
+    its middle rows and the true pose of the middle row."""
+    pair = ops.synthesize_pair((size, size), motion="inplane", changes=3, noise=0.002, seed=seed)
+    params = ops.RegistrationParams().resolved(pair.camera)
+    valid = np.ones(pair.distorted.shape, bool)
+    problem = _RowProblem(pair.reference.astype(np.float32), pair.distorted.astype(np.float32), valid, pair.camera,
+                          (0, 0), (0, 0), params.axes, params.step, _shift_margin(params, None), 16)
+    rows = np.arange(size // 2 - 3, size // 2 + 4)
+    truth = pair.trajectory[size // 2, [ops.POSE_AXES.index(a) for a in params.axes]]
+    return _Solver(problem, params), rows, truth
+
+
+class _Counting:
+    """A solver whose solves are counted (cold: started from zero)."""
+
+    def __init__(self, solver):
+        self.inner, self.cold, self.warm = solver, 0, 0
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def solve(self, rows, space, center, w0=None):
+        if w0 is None:
+            self.cold += 1
+        else:
+            self.warm += 1
+        return self.inner.solve(rows, space, center, w0)
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (1.4, -1.2, 0.1)])
+def test_a_warm_block_solve_reaches_the_cold_optimum(offset):
+    solver, rows, truth = _solver()
+    start = truth + np.asarray(offset)
+    uncertainty = np.array([2.0, 2.0, 0.15])
+    space = _block_space(solver, uncertainty)
+    _, poses, w, _, _ = solver.solve(rows, space, start)  # cold, on the same grid
+    cold_cost, cold_center = solver.last_cost, _centroid(poses, w)
+    counting = _Counting(solver)
+    center, spread, cost, warm = _refine(counting, start, rows, uncertainty, 1, None)
+    assert counting.cold == 1 and counting.warm == 1  # the coarse lattice cold, the full one from it
+    assert abs(cost - cold_cost) <= 1e-9 * cold_cost
+    np.testing.assert_allclose(center, cold_center, atol=1e-4)
+    assert np.abs(center - truth).max() < 1.0  # and it is the pose
+    assert (warm[1] > 0).all() and len(warm[0]) == len(warm[1])
+
+
+def test_a_second_iteration_on_the_same_grid_is_not_solved_again():
+    solver, rows, truth = _solver()
+    uncertainty = np.array([1.0, 1.0, 0.1])
+    space = _block_space(solver, uncertainty, np.ones(3))
+    first = _refine(solver, truth, rows, uncertainty, 1, np.ones(3))[0]
+    counting = _Counting(solver)
+    center = space.lattice_poses(space.snap(first))  # a start on the lattice point the first centroid snaps to
+    again = _refine(counting, center, rows, uncertainty, 3, np.ones(3))
+    # the first solve's centroid snaps back to its own grid: one full-lattice solve (and its coarse start)
+    assert counting.warm == 1 and counting.cold == 1
+    assert np.isfinite(again[2])
+    np.testing.assert_allclose(again[0], _refine_start(solver, center, rows, uncertainty, 1, np.ones(3))[0])
+
+
+def test_carried_weights_land_on_equal_poses_of_the_finer_grid():
+    from rsmb.ops._posespace import PoseSpace
+
+    fine = PoseSpace(("tx", "ty", "rz"), (2.0, 2.0, 0.2), (1.0, 1.0, 0.1))
+    poses = np.array([[2.0, 0.0, 0.2], [0.0, -2.0, -0.2], [4.0, 0.0, 0.0], [0.5, 0.0, 0.0]])
+    w0 = _carried((poses, np.array([0.25, 0.5, 0.75, 1.0])), fine, fine.snap([0.0, 0.0, 0.0]))
+    _, grid = fine.grid([0.0, 0.0, 0.0])
+    # the first two are grid poses; the third lies outside the grid and the fourth off the lattice
+    np.testing.assert_allclose(w0[np.all(np.isclose(grid, poses[0]), axis=1)], [0.25])
+    np.testing.assert_allclose(w0[np.all(np.isclose(grid, poses[1]), axis=1)], [0.5])
+    assert w0.sum() == pytest.approx(0.75)
+
+
+def test_the_chosen_start_is_the_cold_refinement_of_the_best_candidate():
+    """Candidates compete on the coarse rz lattice; the winner's refinement on
+    the full lattice starts from its weights and ends where a cold start does."""
+    solver, rows, truth = _solver()
+    wrong = truth + np.array([6.0, -5.0, 0.0])
+    uncertainty = np.array([1.0, 1.0, 0.1])
+    center, _ = _choose_start(solver, ([wrong, truth], uncertainty), rows)
+    coarse = solver.problem.rotation_stride(2)
+    coarsened = coarse != solver.problem.rotation_stride()
+    known = np.where(coarsened, np.asarray(solver.params.step) * coarse, uncertainty)
+    best = _refine(solver, truth, rows, uncertainty, 1, coarse)[0]
+    _, poses, w, _, _ = solver.solve(rows, _block_space(solver, known), best)
+    np.testing.assert_allclose(center, _centroid(poses, w), atol=1e-4)
+    assert np.abs(center - truth).max() < 1.0
