@@ -22,6 +22,7 @@ rounding.
 """
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -151,14 +152,21 @@ def _cholesky_solve(h, b, idx, m):
     which remove the ridge's bias (several when an offset common to every
     pose, such as intensities far from 0, makes the ridge large against the
     small eigenvalues); returns z (m,)."""
+    # the system's matrix and right-hand side, contiguous (the same numbers)
+    hs = np.empty((m, m))
+    bs = np.empty(m)
+    for p in range(m):
+        bs[p] = b[idx[p]]
+        for q in range(m):
+            hs[p, q] = h[idx[p], idx[q]]
     lmat = np.zeros((m, m))
     scale = 0.0
     for p in range(m):
-        scale = max(scale, h[idx[p], idx[p]])
+        scale = max(scale, hs[p, p])
     ridge = 1e-10 * scale + 1e-30
     for p in range(m):
         for q in range(p + 1):
-            acc = h[idx[p], idx[q]]
+            acc = hs[p, q]
             for t in range(q):
                 acc -= lmat[p, t] * lmat[q, t]
             if p == q:
@@ -168,13 +176,13 @@ def _cholesky_solve(h, b, idx, m):
                 lmat[p, q] = acc / lmat[q, q]
     rhs = np.empty(m)
     for p in range(m):
-        rhs[p] = b[idx[p]]
+        rhs[p] = bs[p]
     z = _triangular_solve(lmat, rhs, m)
     for _ in range(REFINE_STEPS):
         for p in range(m):
-            acc = b[idx[p]]
+            acc = bs[p]
             for q in range(m):
-                acc -= h[idx[p], idx[q]] * z[q]
+                acc -= hs[p, q] * z[q]
             rhs[p] = acc
         dz = _triangular_solve(lmat, rhs, m)
         change, size = 0.0, 0.0
@@ -280,6 +288,139 @@ def _line_search(r, e, slope_w, delta):
     return t
 
 
+#: Most products of pose columns a solve keeps between its iterations
+#: (:class:`_GramCache`): the working set of a few iterations.
+GRAM_POOL = 128
+
+
+class _GramCache(NamedTuple):
+    """Products of pose columns that the Newton models of one partition share.
+
+    ``slot_of`` (K,) maps a pose to its place in the pool (-1: none),
+    ``poses`` (P,) the other way; ``h`` (P, P) and ``b`` (P,) hold the
+    weighted products of the current model where ``h_done`` and ``b_done``
+    say so; ``state`` (2,) = (poses in the pool, 1 when the last model built
+    was a Newton model).  Valid while the pixel weights stay the same (see
+    :func:`_huber_nn_iterate`), so each product is computed once, by the
+    same loop as a fresh one, and reused bit for bit."""
+
+    slot_of: np.ndarray
+    poses: np.ndarray
+    h: np.ndarray
+    h_done: np.ndarray
+    b: np.ndarray
+    b_done: np.ndarray
+    state: np.ndarray
+
+
+@numba.njit(**_JIT)
+def _gram_cache(k_count, pool):
+    return _GramCache(np.full(k_count, -1, np.int64), np.empty(pool, np.int64), np.empty((pool, pool)),
+                      np.zeros((pool, pool), np.bool_), np.empty(pool), np.zeros(pool, np.bool_),
+                      np.zeros(2, np.int64))
+
+
+@numba.njit(**_JIT)
+def _gram_clear(cache):
+    size = cache.state[0]
+    for q in range(size):
+        cache.slot_of[cache.poses[q]] = -1
+        cache.b_done[q] = False
+        for t in range(size):
+            cache.h_done[q, t] = False
+    cache.state[0] = 0
+
+
+@numba.njit(**_SUMS)
+def _dot_lin(ap, lin):
+    acc = 0.0
+    for j in range(ap.shape[0]):
+        acc += ap[j] * lin[j]
+    return acc
+
+
+@numba.njit(**_SUMS)
+def _dot_weighted(ap, aq, weight):
+    acc = 0.0
+    for j in range(ap.shape[0]):
+        acc += weight[j] * ap[j] * aq[j]
+    return acc
+
+
+@numba.njit(**_SUMS)
+def _gram_model(cache, a, idx, m, weight, lin, lam, h, b):
+    """``h`` (m, m) = the weighted Gram matrix of the poses ``idx[:m]``,
+    ``b`` (m,) = their products with ``lin`` less ``lam / 2``: from the
+    cache where it holds them, computed (and kept) where not."""
+    pool = cache.poses.shape[0]
+    if m > pool:  # a working set larger than the pool: computed afresh
+        _gram_clear(cache)
+        for p in range(m):
+            ap = a[idx[p]]
+            b[p] = _dot_lin(ap, lin) - 0.5 * lam
+            for q in range(p + 1):
+                h[p, q] = _dot_weighted(ap, a[idx[q]], weight)
+                h[q, p] = h[p, q]
+        return
+    missing = 0
+    for p in range(m):
+        if cache.slot_of[idx[p]] < 0:
+            missing += 1
+    if cache.state[0] + missing > pool:
+        _gram_clear(cache)
+    for p in range(m):
+        k = idx[p]
+        if cache.slot_of[k] < 0:
+            cache.slot_of[k] = cache.state[0]
+            cache.poses[cache.state[0]] = k
+            cache.state[0] += 1
+    for p in range(m):
+        sp = cache.slot_of[idx[p]]
+        ap = a[idx[p]]
+        if not cache.b_done[sp]:
+            cache.b[sp] = _dot_lin(ap, lin) - 0.5 * lam
+            cache.b_done[sp] = True
+        b[p] = cache.b[sp]
+        for q in range(p + 1):
+            sq = cache.slot_of[idx[q]]
+            if not cache.h_done[sp, sq]:
+                value = _dot_weighted(ap, a[idx[q]], weight)
+                cache.h[sp, sq] = value
+                cache.h[sq, sp] = value
+                cache.h_done[sp, sq] = True
+                cache.h_done[sq, sp] = True
+            h[p, q] = cache.h[sp, sq]
+            h[q, p] = cache.h[sp, sq]
+
+
+@numba.njit(**_JIT)
+def _admit_worst(grad, work, seen, full, max_add, pick):
+    """Mark in ``work`` the ``max_add`` poses with the most negative gradient
+    among those outside it whose gradient is current (every pose when
+    ``full``, else those ``seen``); ties go to the lower index.  ``pick``
+    (>= max_add,) is work space."""
+    count = 0
+    for k in range(grad.shape[0]):
+        if work[k] or not (full or seen[k]):
+            continue
+        gk = grad[k]
+        if not gk < 0.0:
+            continue
+        if count < max_add:
+            pos = count
+            count += 1
+        elif count > 0 and gk < grad[pick[count - 1]]:
+            pos = count - 1
+        else:
+            continue
+        while pos > 0 and grad[pick[pos - 1]] > gk:
+            pick[pos] = pick[pos - 1]
+            pos -= 1
+        pick[pos] = k
+    for q in range(count):
+        work[pick[q]] = True
+
+
 @numba.njit(**_SUMS)
 def _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=True):
     """The active-set Newton iterations of :func:`_solve_huber_nn` from ``w``
@@ -312,6 +453,8 @@ def _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add, restrict
     full = True  # the next gradient pass covers every pose
     seen = np.ones(k_count, dtype=np.bool_)  # poses whose gradient is current
     idx = np.empty(k_count, dtype=np.int64)
+    pick = np.empty(max(max_add, 1), dtype=np.int64)
+    cache = _gram_cache(k_count, min(k_count, GRAM_POOL))
     m = 0
     for it in range(max_outer):
         if full:
@@ -331,19 +474,7 @@ def _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add, restrict
         # working set: support plus the worst violators among the poses seen
         for k in range(k_count):
             work[k] = w[k] > 0.0
-        order = np.argsort(grad)
-        added = 0
-        for q in range(k_count):
-            k = order[q]
-            if added >= max_add:
-                break
-            if grad[k] >= 0.0 and (full or seen[k]):
-                break
-            if not (full or seen[k]):
-                continue
-            if not work[k]:
-                work[k] = True
-                added += 1
+        _admit_worst(grad, work, seen, full, max_add, pick)
         m = 0
         for k in range(k_count):
             if work[k]:
@@ -374,8 +505,12 @@ def _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add, restrict
                 inliers += 1
         # the Newton model is bounded only with enough inliers to fix every pose
         newton = newton_ok and stable and it > 0 and inliers >= m
-        h = np.zeros((m, m))
-        b = np.empty(m)
+        # the Newton model's pixel weights depend on the partition only: its
+        # products from the last iteration still hold when that was a Newton
+        # model of the same partition
+        if not (newton and stable and cache.state[1] == 1):
+            _gram_clear(cache)
+        cache.state[1] = 1 if newton else 0
         for j in range(n):
             if part[j] == 0:
                 weight[j] = 1.0
@@ -387,19 +522,9 @@ def _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add, restrict
                 weight[j] = delta / abs(r[j])
                 # majoriser delta r^2/|r0| about the current residual r0
                 lin[j] = weight[j] * g[j]
-        for p in range(m):
-            ap = a[idx[p]]
-            acc = 0.0
-            for j in range(n):
-                acc += ap[j] * lin[j]
-            b[p] = acc - 0.5 * lam
-            for q in range(p + 1):
-                aq = a[idx[q]]
-                acc = 0.0
-                for j in range(n):
-                    acc += weight[j] * ap[j] * aq[j]
-                h[p, q] = acc
-                h[q, p] = acc
+        h = np.empty((m, m))
+        b = np.empty(m)
+        _gram_model(cache, a, idx, m, weight, lin, lam, h, b)
         x = np.empty(m)
         for p in range(m):
             x[p] = w[idx[p]]

@@ -1,0 +1,537 @@
+"""The row solver as it was before its speed work (main at e25acef), kept
+verbatim for the tests that compare the current solver with it on the same
+rows: the same objective, the same statuses, the same weights up to rounding.
+Only its module docstring and the import of ``optimal_chi`` differ."""
+
+import math
+
+import numba
+import numpy as np
+
+from rsmb.ops._oracle import optimal_chi
+
+#: The row solver's settings, one source for every caller (the registration's
+#: rows, the depth re-solve, :func:`solve_row_fast`): relative KKT tolerance,
+#: outer iterations, poses added to the working set per iteration.
+TOL, MAX_OUTER, MAX_ADD = 1e-6, 100, 8
+
+__all__ = []
+
+#: Most steps of iterative refinement of a Newton system (:func:`_cholesky_solve`).
+REFINE_STEPS = 8
+
+#: How a row solve ended (:func:`_solve_huber_nn`): the optimality conditions
+#: hold to the tolerance; no step decreases the objective any more while they
+#: do not; the iteration limit.
+SOLVED, STALLED, LIMIT = 0, 1, 2
+
+_JIT = dict(nogil=True, cache=True)
+# sums over the pixels of a row may be reassociated (vectorised); no other
+# fast-math liberty is taken (NaN tests must keep working)
+_SUMS = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})
+
+
+@numba.njit(**_JIT)
+def _huber_value(r, delta):
+    a = abs(r)
+    if a <= delta:
+        return r * r
+    return 2.0 * delta * a - delta * delta
+
+
+@numba.njit(**_JIT)
+def _residual(a, g, w):
+    """``g - a.T @ w`` over the poses with weight (float64, shape (n,))."""
+    r = np.empty(a.shape[1])
+    for j in range(a.shape[1]):
+        r[j] = g[j]
+    for k in range(a.shape[0]):
+        if w[k] > 0.0:
+            for j in range(a.shape[1]):
+                r[j] -= w[k] * a[k, j]
+    return r
+
+
+@numba.njit(**_JIT)
+def _psi(r, delta):
+    if r > delta:
+        return 2.0 * delta
+    if r < -delta:
+        return -2.0 * delta
+    return 2.0 * r
+
+
+@numba.njit(**_SUMS)
+def _objective(r, w, lam, delta):
+    total = 0.0
+    for j in range(r.shape[0]):
+        total += _huber_value(r[j], delta)
+    return total + lam * np.sum(w)
+
+
+@numba.njit(**_SUMS)
+def _gradient(a, r, lam, delta, out):
+    k_count, n = a.shape
+    psi = np.empty(n)
+    for j in range(n):
+        psi[j] = _psi(r[j], delta)
+    for k in range(k_count):
+        acc = 0.0
+        for j in range(n):
+            acc += psi[j] * a[k, j]
+        out[k] = lam - acc
+
+
+@numba.njit(**_SUMS)
+def _gradient_of(a, r, lam, delta, out, idx, m):
+    """:func:`_gradient` for the poses ``idx[:m]`` only (the others untouched)."""
+    n = a.shape[1]
+    psi = np.empty(n)
+    for j in range(n):
+        psi[j] = _psi(r[j], delta)
+    for p in range(m):
+        k = idx[p]
+        acc = 0.0
+        for j in range(n):
+            acc += psi[j] * a[k, j]
+        out[k] = lam - acc
+
+
+@numba.njit(**_JIT)
+def _violation(grad, w, seen, full):
+    """Largest KKT violation over every pose (``full``) or those ``seen``."""
+    viol = 0.0
+    for k in range(grad.shape[0]):
+        if full or seen[k]:
+            v = abs(grad[k]) if w[k] > 0.0 else -grad[k]
+            viol = max(viol, v)
+    return viol
+
+
+@numba.njit(**_JIT)
+def _triangular_solve(lmat, rhs, m):
+    """Solve L L' z = rhs."""
+    z = np.empty(m)
+    for p in range(m):
+        acc = rhs[p]
+        for t in range(p):
+            acc -= lmat[p, t] * z[t]
+        z[p] = acc / lmat[p, p]
+    for p in range(m - 1, -1, -1):
+        acc = z[p]
+        for t in range(p + 1, m):
+            acc -= lmat[t, p] * z[t]
+        z[p] = acc / lmat[p, p]
+    return z
+
+
+@numba.njit(**_JIT)
+def _cholesky_solve(h, b, idx, m):
+    """Solve h[idx, idx] z = b[idx] (first m entries of idx) by Cholesky with a
+    tiny relative ridge (the Gram matrices of neighbouring poses are nearly
+    singular) and steps of iterative refinement against the unridged matrix,
+    which remove the ridge's bias (several when an offset common to every
+    pose, such as intensities far from 0, makes the ridge large against the
+    small eigenvalues); returns z (m,)."""
+    lmat = np.zeros((m, m))
+    scale = 0.0
+    for p in range(m):
+        scale = max(scale, h[idx[p], idx[p]])
+    ridge = 1e-10 * scale + 1e-30
+    for p in range(m):
+        for q in range(p + 1):
+            acc = h[idx[p], idx[q]]
+            for t in range(q):
+                acc -= lmat[p, t] * lmat[q, t]
+            if p == q:
+                acc += ridge
+                lmat[p, p] = math.sqrt(acc) if acc > 0.0 else math.sqrt(ridge)
+            else:
+                lmat[p, q] = acc / lmat[q, q]
+    rhs = np.empty(m)
+    for p in range(m):
+        rhs[p] = b[idx[p]]
+    z = _triangular_solve(lmat, rhs, m)
+    for _ in range(REFINE_STEPS):
+        for p in range(m):
+            acc = b[idx[p]]
+            for q in range(m):
+                acc -= h[idx[p], idx[q]] * z[q]
+            rhs[p] = acc
+        dz = _triangular_solve(lmat, rhs, m)
+        change, size = 0.0, 0.0
+        for p in range(m):
+            z[p] += dz[p]
+            change = max(change, abs(dz[p]))
+            size = max(size, abs(z[p]))
+        if change <= 1e-13 * size:
+            break
+    return z
+
+
+@numba.njit(**_JIT)
+def _nnqp(h, b, x, tol):
+    """Lawson-Hanson active set for min x'Hx - 2b'x, x >= 0; x (feasible) is
+    updated in place."""
+    m = b.shape[0]
+    free = np.zeros(m, dtype=np.bool_)
+    for p in range(m):
+        free[p] = x[p] > 0.0
+    idx = np.empty(m, dtype=np.int64)
+    for _outer in range(3 * m + 10):
+        for _inner in range(3 * m + 10):
+            nf = 0
+            for p in range(m):
+                if free[p]:
+                    idx[nf] = p
+                    nf += 1
+            if nf == 0:
+                break
+            z = _cholesky_solve(h, b, idx, nf)
+            alpha = 1.0
+            blocked = -1
+            for q in range(nf):
+                if z[q] <= 0.0:
+                    p = idx[q]
+                    step = x[p] / (x[p] - z[q])
+                    if step < alpha:
+                        alpha = step
+                        blocked = p
+            for q in range(nf):
+                p = idx[q]
+                x[p] += alpha * (z[q] - x[p])
+            if blocked < 0:
+                break
+            x[blocked] = 0.0
+            for q in range(nf):
+                p = idx[q]
+                if x[p] <= 0.0:
+                    x[p] = 0.0
+                    free[p] = False
+        best, best_p = -tol, -1
+        for p in range(m):
+            if not free[p]:
+                g = -b[p]
+                for q in range(m):
+                    g += h[p, q] * x[q]
+                if g < best:
+                    best, best_p = g, p
+        if best_p < 0:
+            return
+        free[best_p] = True
+
+
+@numba.njit(**_SUMS)
+def _line_search(r, e, slope_w, delta):
+    """Exact minimiser over t in [0, 1] of sum rho(r - t e) + t * slope_w."""
+
+    def dphi(t):
+        acc = slope_w
+        curv = 0.0
+        for j in range(r.shape[0]):
+            rj = r[j] - t * e[j]
+            acc -= _psi(rj, delta) * e[j]
+            if abs(rj) <= delta:
+                curv += 2.0 * e[j] * e[j]
+        return acc, curv
+
+    d1, _ = dphi(1.0)
+    if d1 <= 0.0:
+        return 1.0
+    lo, hi = 0.0, 1.0
+    t = 1.0
+    d, c = d1, 0.0
+    d0, c0 = dphi(0.0)
+    if d0 >= 0.0:
+        return 0.0
+    t, d, c = 0.0, d0, c0
+    for _ in range(60):
+        if d < 0.0:
+            lo = t
+        else:
+            hi = t
+        nt = t - d / c if c > 0.0 else 0.5 * (lo + hi)
+        if not (lo < nt < hi):
+            nt = 0.5 * (lo + hi)
+        if hi - lo < 1e-14:
+            break
+        t = nt
+        d, c = dphi(t)
+        if d == 0.0:
+            break
+    return t
+
+
+@numba.njit(**_SUMS)
+def _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=True):
+    """The active-set Newton iterations of :func:`_solve_huber_nn` from ``w``
+    (in place).  Returns (objective, outer iterations, how they ended:
+    :data:`SOLVED` the KKT conditions hold to ``tol_rel``, :data:`STALLED` no
+    step decreases the objective any more, :data:`LIMIT` ``max_outer``
+    iterations; the KKT violation, at ``w`` when SOLVED, else at an earlier
+    iterate).
+
+    ``restricted``: after a pass of the gradient over every pose, the
+    iterations look at the working set's poses only, until the conditions
+    hold there; then one pass over every pose confirms them or admits its
+    worst violators.  The poses that end with zero weight (most of a row's
+    neighbourhood) are then checked a few times per solve instead of at every
+    iteration.  False: every iteration passes over every pose."""
+    k_count, n = a.shape
+    r = _residual(a, g, w)
+    grad = np.empty(k_count)
+    work = np.zeros(k_count, dtype=np.bool_)
+    part = np.full(n, 2, dtype=np.int8)
+    weight = np.empty(n)
+    lin = np.empty(n)
+    e = np.empty(n)
+    w_old = np.empty(k_count)
+    r_old = np.empty(n)
+    viol = np.inf
+    it = 0
+    newton_ok = True
+    obj = _objective(r, w, lam, delta)
+    full = True  # the next gradient pass covers every pose
+    seen = np.ones(k_count, dtype=np.bool_)  # poses whose gradient is current
+    idx = np.empty(k_count, dtype=np.int64)
+    m = 0
+    for it in range(max_outer):
+        if full:
+            _gradient(a, r, lam, delta, grad)
+        else:
+            _gradient_of(a, r, lam, delta, grad, idx, m)
+        viol = _violation(grad, w, seen, full)
+        if viol <= tol_rel * max(obj, 1e-30):
+            if full:
+                return obj, it, SOLVED, viol
+            # optimal on the working set: one pass over every pose confirms it
+            full = True
+            _gradient(a, r, lam, delta, grad)
+            viol = _violation(grad, w, seen, full)
+            if viol <= tol_rel * max(obj, 1e-30):
+                return obj, it, SOLVED, viol
+        # working set: support plus the worst violators among the poses seen
+        for k in range(k_count):
+            work[k] = w[k] > 0.0
+        order = np.argsort(grad)
+        added = 0
+        for q in range(k_count):
+            k = order[q]
+            if added >= max_add:
+                break
+            if grad[k] >= 0.0 and (full or seen[k]):
+                break
+            if not (full or seen[k]):
+                continue
+            if not work[k]:
+                work[k] = True
+                added += 1
+        m = 0
+        for k in range(k_count):
+            if work[k]:
+                idx[m] = k
+                m += 1
+        checked = full  # this working set was chosen after a pass over every pose
+        if restricted:
+            full = False
+            for k in range(k_count):
+                seen[k] = work[k]
+        # quadratic model of the current partition
+        # Newton model of the partition once it is stable; before that the
+        # half-quadratic majoriser (outlier curvature delta/|r|), which is
+        # bounded below whatever the partition
+        stable = True
+        for j in range(n):
+            side = 0
+            if r[j] > delta:
+                side = 1
+            elif r[j] < -delta:
+                side = -1
+            if side != part[j]:
+                stable = False
+                part[j] = side
+        inliers = 0
+        for j in range(n):
+            if part[j] == 0:
+                inliers += 1
+        # the Newton model is bounded only with enough inliers to fix every pose
+        newton = newton_ok and stable and it > 0 and inliers >= m
+        h = np.zeros((m, m))
+        b = np.empty(m)
+        for j in range(n):
+            if part[j] == 0:
+                weight[j] = 1.0
+                lin[j] = g[j]
+            elif newton:
+                weight[j] = 0.0
+                lin[j] = delta * part[j]
+            else:
+                weight[j] = delta / abs(r[j])
+                # majoriser delta r^2/|r0| about the current residual r0
+                lin[j] = weight[j] * g[j]
+        for p in range(m):
+            ap = a[idx[p]]
+            acc = 0.0
+            for j in range(n):
+                acc += ap[j] * lin[j]
+            b[p] = acc - 0.5 * lam
+            for q in range(p + 1):
+                aq = a[idx[q]]
+                acc = 0.0
+                for j in range(n):
+                    acc += weight[j] * ap[j] * aq[j]
+                h[p, q] = acc
+                h[q, p] = acc
+        x = np.empty(m)
+        for p in range(m):
+            x[p] = w[idx[p]]
+        _nnqp(h, b, x, 1e-3 * tol_rel * max(obj, 1e-30))
+        # direction and exact line search on the true objective
+        for j in range(n):
+            e[j] = 0.0
+        slope = 0.0
+        for p in range(m):
+            d = x[p] - w[idx[p]]
+            slope += lam * d
+            if d != 0.0:
+                ap = a[idx[p]]
+                for j in range(n):
+                    e[j] += d * ap[j]
+        t = _line_search(r, e, slope, delta)
+        if t <= 0.0:
+            if newton:  # the partition's Newton model misled: the majoriser's step descends
+                newton_ok = False
+                continue
+            if not checked:  # stuck on the working set: look at every pose first
+                full = True
+                continue
+            return obj, it, STALLED, viol
+        w_old[:] = w
+        r_old[:] = r
+        for p in range(m):
+            k = idx[p]
+            w[k] += t * (x[p] - w[k])
+            if w[k] < 0.0:
+                w[k] = 0.0
+        for j in range(n):
+            r[j] -= t * e[j]
+        new_obj = _objective(r, w, lam, delta)
+        if new_obj > obj * (1.0 + 1e-12):
+            # rounding defeated the step: undo it; after a Newton step retry
+            # with the majoriser, otherwise this is as good as it gets
+            w[:] = w_old
+            r[:] = r_old
+            if not newton:
+                if not checked:
+                    full = True
+                    continue
+                return obj, it, STALLED, viol
+            newton_ok = False
+            continue
+        newton_ok = True
+        if obj - new_obj <= 1e-14 * obj:
+            # no progress left: the remaining KKT residual is rounding (the
+            # Cholesky ridge), not a better point, once every pose was seen
+            if not checked:
+                obj = new_obj
+                full = True
+                continue
+            return new_obj, it, STALLED, viol
+        obj = new_obj
+    return obj, max_outer, LIMIT, viol
+
+
+@numba.njit(**_SUMS)
+def _kkt(a, g, w, lam, delta):
+    """At ``w``: (objective, KKT violation, bound on the objective's excess
+    over the optimum).  The violation is the largest ``|grad_k|`` over the
+    support and ``-grad_k`` off it; the bound is convexity's
+    ``grad . (w - w*) <= grad . w + max(-grad)+ sum(w*)`` with
+    ``lam sum(w*) <= objective`` (inf when ``lam`` is 0)."""
+    k_count, n = a.shape
+    r = _residual(a, g, w)
+    obj = _objective(r, w, lam, delta)
+    grad = np.empty(k_count)
+    _gradient(a, r, lam, delta, grad)
+    viol, along, most = 0.0, 0.0, 0.0
+    for k in range(k_count):
+        if w[k] > 0.0:
+            viol = max(viol, abs(grad[k]))
+            along += grad[k] * w[k]
+        most = max(most, -grad[k])
+    viol = max(viol, most)
+    gap = along + most * obj / lam if lam > 0.0 else (along if most <= 0.0 else np.inf)
+    return obj, viol, max(gap, 0.0)
+
+
+@numba.njit(**_SUMS)
+def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
+    """Minimise sum rho(g - a' w) + lam sum w over w >= 0 (in place).
+
+    ``a`` (K, N) float32 with zero columns for invalid pixels, ``g`` (N,) with
+    zeros there.  A solve that ends short of the optimality conditions is
+    solved again from where it stopped with four times the iterations and every
+    violating pose admitted at once.  Returns (objective, outer iterations,
+    final KKT violation, status): :data:`SOLVED` when the KKT violation is at
+    most ``tol_rel`` times the objective or the objective provably within
+    ``tol_rel`` of the optimum (:func:`_kkt`), else :data:`LIMIT` or
+    :data:`STALLED` by how the last attempt ended.
+    """
+    obj, it, how, viol = _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add)
+    if how == SOLVED:
+        return obj, it, viol, SOLVED
+    obj, more, how, viol = _huber_nn_iterate(a, g, w, lam, delta, tol_rel, 4 * max_outer, a.shape[0])
+    it += more
+    if how == SOLVED:
+        return obj, it, viol, SOLVED
+    obj, viol, gap = _kkt(a, g, w, lam, delta)
+    bound = tol_rel * max(obj, 1e-30)
+    if viol <= bound or gap <= bound:
+        return obj, it, viol, SOLVED
+    return obj, it, viol, how
+
+
+@numba.njit(**_SUMS)
+def _synthesize(a, w, out):
+    """out (N,) = a' w, the registered (warped and blurred) row."""
+    k_count, n = a.shape
+    for j in range(n):
+        out[j] = 0.0
+    for k in range(k_count):
+        if w[k] > 0.0:
+            for j in range(n):
+                out[j] += w[k] * a[k, j]
+
+
+def solve_row_fast(F, g, *, lambda_w, lambda_chi, w0=None, tol=TOL, max_outer=MAX_OUTER, max_add=MAX_ADD):
+    """Fast exact solve of eq. 13 for one row (or a stacked block of rows).
+
+    Parameters
+    ----------
+    F : ndarray, shape (N, K)
+        Row of the reference warped by each of K poses (METHOD.md's ``F_i``).
+    g : ndarray, shape (N,)
+        Observed row, intensities in [0, 1].
+    lambda_w, lambda_chi : float
+        Weights of ``||w||_1`` and ``||chi||_1`` in eq. 13.
+    w0 : ndarray, shape (K,), optional
+        Warm start (non-negative).
+    tol, max_outer, max_add : float, int, int
+        Relative KKT tolerance, outer iterations, poses added per iteration
+        (defaults :data:`TOL`, :data:`MAX_OUTER`, :data:`MAX_ADD`).
+
+    Returns
+    -------
+    w : ndarray, shape (K,), float64
+    chi : ndarray, shape (N,), float64
+        Optimal change term for ``w`` (soft-threshold of the residual).
+    objective : float
+        Value of eq. 13.
+    """
+    a = np.ascontiguousarray(np.asarray(F, dtype=np.float32).T)
+    g64 = np.asarray(g, dtype=np.float64)
+    w = np.zeros(a.shape[0]) if w0 is None else np.maximum(np.asarray(w0, dtype=np.float64), 0.0).copy()
+    delta = 0.5 * float(lambda_chi)
+    obj, _, _, _ = _solve_huber_nn(a, g64, w, float(lambda_w), delta, float(tol), int(max_outer), int(max_add))
+    chi = optimal_chi(g64 - a.T.astype(np.float64) @ w, lambda_chi=lambda_chi)
+    return w, chi, float(obj)
