@@ -4,7 +4,9 @@ so that a library user and ``rsmb detect`` get the same answer.
 
 1. Put both windows on the common intensity scale (clipped pixels NaN).
 2. Register the capture's rows against the reference (eq. 13 per row).
-3. Re-ground the rows that followed something nearer than the ground.
+3. Re-ground the rows that followed something nearer than the ground; give
+   back their model to the pixels the row solves left out only because the
+   search grid touched a clipped pixel (their weighted poses do not).
 4. Depth layers, the dense depth map and the rows re-solved at depth.
 5. The change score; the pixels the plane left without a model (clipped ones)
    scored on their model interval; parallax is never change.
@@ -15,10 +17,11 @@ after, from the summed histograms (:func:`method_changes` does those steps
 for a single window).
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ._oracle import optimal_chi
 from ._timing import StageClock
 from .changes._changes import (
     ChangeParams,
@@ -114,6 +117,8 @@ def run_method(reference, capture, *, camera, params=None, changes=None, intensi
         threshold = _window_threshold(result, dist, changes)
     result = reground(result, ref, dist, camera=camera, params=params, threshold=threshold,
                       min_area=changes.min_area, distorted_valid=valid, **origins)
+    with clock.stage("score"):
+        result = _fitted_beside_clipped(result, capture, reference, intensity, camera, params, origins)
     with clock.stage("depth"):
         layers = _depth(result, ref, dist, camera, params, changes, origins)
     with clock.stage("score"):
@@ -192,6 +197,37 @@ def _bounded(capture, reference, intensity, result, camera, params, origins):
     cap_high, cap_low = _at_clip(capture, intensity.capture_clip)
     chi = bounded_score(capture * factor, bounds, cap_high, cap_low, lambda_chi=params.lambda_chi)
     return np.where(need, chi, np.nan), bounds.model
+
+
+def _fitted_beside_clipped(result, capture, reference, intensity, camera, params, origins):
+    """The registration with the pixels that lost their model only to the
+    row solves' search grid given it back.  A row solve leaves out every
+    pixel whose search grid touches a clipped reference pixel (a disk as
+    wide as the search window around each one), but a pixel whose row's
+    weighted poses (its active poses and their blur) touch none, and whose
+    capture value is not clipped, has a point model as any fitted pixel
+    does: its ``registered``, ``chi`` (eq. 13's, soft-thresholded) and
+    ``valid`` are set, so that the depth steps and the score treat it as
+    fitted (the depth map charges a pixel without a model the threshold,
+    so any depth would seem to explain the pixels around every clipped
+    one).  ``capture``, ``reference``: the windows as ingested."""
+    if intensity is None:
+        return result
+    factor = np.float32(intensity.scaled(1.0))
+    distorted = intensity.apply(capture, "capture")  # NaN: clipped or no-data
+    need = ~result.valid & np.isfinite(distorted)
+    if not need.any():
+        return result
+    ref_high, ref_low = _at_clip(reference, intensity.reference_clip)
+    bounds = model_bounds(result, reference * factor, ref_high, ref_low, need, camera=camera, **origins)
+    point = need & np.isfinite(bounds.model) & (bounds.high_share == 0) & (bounds.low_share == 0)
+    if not point.any():
+        return result
+    registered, chi, valid = result.registered.copy(), result.chi.copy(), result.valid.copy()
+    registered[point] = bounds.model[point]
+    chi[point] = optimal_chi(distorted[point] - bounds.model[point], lambda_chi=params.lambda_chi)
+    valid[point] = True
+    return replace(result, registered=registered, chi=chi, valid=valid)
 
 
 def _at_clip(values, levels):

@@ -150,3 +150,37 @@ def test_zeros_that_are_fill():
     # a window grown by the rule's margin decides its core as the whole image does
     m = 24 + 48
     assert (ops.fill_zeros(padded[:4 + 100 + m, :4 + 100 + m])[4:104, 4:104] == fill[:100, :100]).all()
+
+
+def test_pixels_beside_a_clipped_one_keep_their_fit_through_the_method():
+    """A row solve leaves out every pixel whose search grid touches a clipped
+    reference pixel; run_method gives back the model of those whose weighted
+    poses (motion and blur) do not touch it and whose capture is not
+    clipped, so the depth steps see them as fitted (no depth taken around
+    the clipped pixels) and they carry evidence: no change on a pair
+    without change."""
+    pair = ops.synthesize_pair((128, 128), motion="translation", changes=0, noise=0.002, seed=4, exposure=6.0,
+                               scale=0.3, scene=None)
+    rng = np.random.default_rng(5)
+    reference = np.minimum(pair.reference, 0.95).astype(np.float32)
+    specks = [(int(y), int(x)) for y, x in rng.integers(24, 104, (6, 2))]
+    for y, x in specks:
+        reference[y, x] = 1.0  # saturated: clipped, left out of the row solves
+    capture = np.minimum(pair.distorted, 0.95).astype(np.float32)  # the capture clips nothing
+    scale = ops.IntensityScale(0.0, 0.8, (None, 1.0), (None, None))  # the common scale is the input's
+    found = ops.run_method(reference, capture, camera=pair.camera, intensity=scale)
+    reg = found.registration
+    high = np.zeros(reference.shape, bool)
+    high[tuple(np.array(specks).T)] = True
+    holed = np.where(high, np.nan, reference)
+    plain = ops.register(holed, capture, camera=pair.camera)  # what the row solves alone leave
+    bounds = ops.model_bounds(reg, reference, high, np.zeros(reference.shape, bool), np.ones(capture.shape, bool),
+                              camera=pair.camera)
+    point = np.isfinite(bounds.model) & (bounds.high_share == 0)
+    given = point & ~plain.valid
+    assert given.sum() >= 200  # the search grid's disks are far wider than the motion's footprint
+    assert reg.valid[point].all() and not reg.valid[~np.isfinite(bounds.model) | (bounds.high_share > 0)].any()
+    np.testing.assert_allclose(found.registered[given], capture[given], atol=0.06)
+    assert np.isfinite(found.score[given]).all()
+    assert not found.parallax.any()
+    assert not ops.method_changes(found, camera=pair.camera).mask.any()
