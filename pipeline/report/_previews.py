@@ -93,8 +93,11 @@ def reduce_preview(rgba, factor):
         return rgba
     h, w = rgba.shape[:2]
     if h % factor == 0 and w % factor == 0 and (rgba[..., 3] == 255).all():  # whole blocks, all with data
-        blocks = rgba[..., :3].reshape(h // factor, factor, w // factor, factor, 3)
-        rgb = (blocks.mean(axis=(1, 3), dtype=np.float32) + np.float32(0.5)).astype(np.uint8)
+        # the block sums in integers, rows first (contiguous adds: several times faster than a mean over
+        # both axes), divided in float32: the same bytes as the float32 block mean, whose sums are exact
+        rows = rgba[..., :3].reshape(h // factor, factor, w, 3).sum(axis=1, dtype=np.uint32)
+        sums = rows.reshape(h // factor, w // factor, factor, 3).sum(axis=2, dtype=np.uint32)
+        rgb = (sums.astype(np.float32) / np.float32(factor * factor) + np.float32(0.5)).astype(np.uint8)
         return np.concatenate([rgb, np.full(rgb.shape[:2] + (1,), 255, np.uint8)], axis=-1)
     bands = np.where(rgba[..., 3] > 0, np.moveaxis(rgba[..., :3], -1, 0).astype(np.float32), np.float32(np.nan))
     return _to_rgba(np.stack([_reduce_band(b, factor, "mean") for b in bands]), True)
