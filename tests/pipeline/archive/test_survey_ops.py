@@ -1,6 +1,7 @@
 """Survey operations: two runs on one folder, a layout whose names cannot
 collide, the output folder kept out of the glob, the earlier layout moved."""
 
+import contextlib
 import json
 import os
 import shutil
@@ -66,6 +67,22 @@ def _freeze(proc):
     _wait_for(stopped, 30.0)
 
 
+@contextlib.contextmanager
+def _frozen(args, ready):
+    """``rsmb args`` run in a process of its own and frozen (:func:`_freeze`)
+    once ``ready()`` holds (or it ended); on leaving, resumed and waited for:
+    it must then finish with exit 0."""
+    first = subprocess.Popen([sys.executable, "-m", "rsmb.pipeline.cli", *args], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE)
+    try:
+        _wait_for(lambda: ready() or first.poll() is not None)
+        _freeze(first)
+        yield first
+    finally:
+        first.send_signal(signal.SIGCONT)
+    assert first.wait(timeout=300) == 0, first.stderr.read()
+
+
 def _summary(out):
     return json.loads(sorted((out / "nights").glob("*.json"))[-1].read_text())
 
@@ -89,19 +106,12 @@ def test_a_second_survey_on_the_folder_changes_nothing(archive, tmp_path, capsys
         _capture(night / f"c{k}.tif", scene, origin, seed=40 + k)
     out = tmp_path / "out"
     args = _args(references, night / "*.tif", out, "--parallel", "1")
-    first = subprocess.Popen([sys.executable, "-m", "rsmb.pipeline.cli", *args], stdout=subprocess.DEVNULL,
-                             stderr=subprocess.PIPE)
-    try:
-        _wait_for(lambda: (out / ".partial" / "building").exists() or first.poll() is not None)
-        _freeze(first)
+    with _frozen(args, lambda: (out / ".partial" / "building").exists()):
         before = _tree(out)
         assert main(args) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "ledger.sqlite.lock: in use by another rsmb survey" in err[0], err
         assert _tree(out) == before
-    finally:
-        first.send_signal(signal.SIGCONT)
-    assert first.wait(timeout=300) == 0, first.stderr.read()
     summary = _summary(out)
     assert summary["done"] == 3 and summary["failed"] == 0
     for k in range(3):
@@ -116,20 +126,13 @@ def test_two_detect_runs_on_one_store(geotiff_pair_files, tmp_path, capsys):
     _, ref, dist = geotiff_pair_files
     store = tmp_path / "out.zarr"
     args = ["-q", "detect", str(ref), str(dist), "-o", str(store)]
-    first = subprocess.Popen([sys.executable, "-m", "rsmb.pipeline.cli", *args], stdout=subprocess.DEVNULL,
-                             stderr=subprocess.PIPE)
-    try:
-        _wait_for(lambda: Path(f"{store}.partial").exists() or first.poll() is not None)
-        _freeze(first)
+    with _frozen(args, lambda: Path(f"{store}.partial").exists()):
         before = _tree(tmp_path)
         for extra in ([], ["--overwrite"]):
             assert main(args + extra) == 2
             err = capsys.readouterr().err.strip().splitlines()
             assert len(err) == 1 and "out.zarr.lock: in use by another rsmb detect" in err[0], err
         assert _tree(tmp_path) == before
-    finally:
-        first.send_signal(signal.SIGCONT)
-    assert first.wait(timeout=300) == 0, first.stderr.read()
     assert (store / "zarr.json").is_file() and not Path(f"{store}.partial").exists()
     assert not Path(f"{store}.lock").exists()
 
