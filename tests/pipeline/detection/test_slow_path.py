@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from rsmb import ops
+from rsmb.ops.synthetic._synth import readout_path
 from rsmb.pipeline import DetectConfig, detect, evaluate
 from rsmb.pipeline.bench._archive import CaptureSpec, write_capture, write_reference
 from rsmb.pipeline.detection._overview import overview_factor
@@ -16,20 +17,12 @@ from ..conftest import read_store
 SIDE, MARGIN, EXPOSURE = 512, 128, 24.0
 
 
-def _path(**axes):
-    duration = SIDE + EXPOSURE + 1.0
-    t = np.linspace(0.0, duration, 64)
-    poses = np.zeros((t.size, 6))
-    for name, (start, end) in axes.items():
-        poses[:, ops.POSE_AXES.index(name)] = start + (end - start) * t / duration
-    return ops.CameraPath(t, poses)
-
-
 @pytest.fixture(scope="module")
 def yaw_capture(tmp_path_factory):
     d = tmp_path_factory.mktemp("yaw")
     scene = (0.05 + 0.7 * ops.aerial_scene((SIDE + 2 * MARGIN,) * 2, seed=21)).astype(np.float32)
-    path = _path(rx=(2.0, -2.0), ry=(-2.5, 2.0), tx=(-4.0, 4.0), ty=(1.0, 4.0), rz=(-0.8, 0.8))
+    path = readout_path(SIDE, EXPOSURE, rx=(2.0, -2.0), ry=(-2.5, 2.0), tx=(-4.0, 4.0), ty=(1.0, 4.0),
+                        rz=(-0.8, 0.8))
     spec = CaptureSpec((MARGIN, MARGIN), (SIDE, SIDE), seed=22, changes=8, exposure=EXPOSURE, path=path,
                        interpolation="cubic")
     write_capture(d / "capture.tif", scene, spec)
