@@ -8,7 +8,7 @@ import numpy as np
 from .._camera import full_poses
 from .._posespace import PoseSpace
 from ._rowproblem import _centroid, _spread
-from .._warp import _build_row
+from .._warp import _warp_into
 
 __all__ = []
 
@@ -27,7 +27,9 @@ def _gradients(image, valid=None):
     reference) has no gradient, and neither has its border: filling it with
     any value would draw edges that the correlation follows."""
     ok = np.isfinite(image) if valid is None else valid & np.isfinite(image)
-    image = np.where(ok, image, float(np.median(image[ok])) if ok.any() else 0.0).astype(np.float32)
+    if not ok.all():
+        image = np.where(ok, image, float(np.median(image[ok])) if ok.any() else 0.0)
+    image = image.astype(np.float32)
     image = cv2.GaussianBlur(image, (0, 0), 1.0)
     gx, gy = cv2.Sobel(image, cv2.CV_32F, 1, 0), cv2.Sobel(image, cv2.CV_32F, 0, 1)
     if not ok.all():
@@ -71,16 +73,15 @@ def _coarse_search(problem, params, rows, count=4):
         uncertainty[axes.index("rz")] = search["rz"] / (2 * n) if n else 0.0
     band = np.arange(r0 - margin_y, r1 + margin_y)
     peaks = []
-    buf = np.empty((1, width), dtype=np.float32)
+    img = np.empty((band.size, width), dtype=np.float32)
     for rz in rz_values:
+        # the band warped in one compiled call, each row by its own pose (the
+        # slow part varies along the rows); NaN where it samples no data
         pose = full_poses(np.array([[rz]]), ("rz",))
-        img = np.empty((band.size, width), dtype=np.float32)
-        seen = np.empty((band.size, width), dtype=bool)
-        for q, i in enumerate(band):
-            seen[q] = _build_row(problem.ref, float(i + problem.dy), float(problem.dx), problem.with_slow(pose, i),
-                                 problem.focal, problem.cx, problem.cy, buf) != 0
-            img[q] = buf[0]
-        score = sum(cv2.matchTemplate(i, t, cv2.TM_CCOEFF_NORMED) for i, t in zip(_gradients(img, seen), templates))
+        poses = pose if problem.slow is None else pose + problem.slow.pose6(band)
+        _warp_into(problem.ref, poses, problem.focal, problem.cx, problem.cy, float(band[0] + problem.dy),
+                   float(problem.dx), img)
+        score = sum(cv2.matchTemplate(i, t, cv2.TM_CCOEFF_NORMED) for i, t in zip(_gradients(img), templates))
         for peak, (x, y) in _local_maxima(score, 2):
             peaks.append((peak, margin_x - x, margin_y - y, rz))
     peaks.sort(key=lambda p: -p[0])
