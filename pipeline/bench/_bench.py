@@ -391,6 +391,20 @@ def bench_scale(workdir, *, sizes=(2048, 4096, 8192), tiles=(None, 512)):
     for label, runs in out.items():
         peaks = " / ".join(f"{r['peak_rss_mb']:.0f}" for r in runs.values())
         _echo(f"scale, {label}: peak RSS {peaks} MB at {' / '.join(f'{n}^2' for n in runs)}")
+        smallest = min(runs)
+        for size, r in runs.items():
+            if size != smallest:
+                # issue 17 item 4: a large image at least as fast per megapixel as a small one
+                r["rate_vs_smallest"] = r["megapixels_per_s"] / runs[smallest]["megapixels_per_s"]
+                r["cpu_per_megapixel_vs_smallest"] = (r["timings"]["cpu_s"]["total"] / size ** 2) / (
+                    runs[smallest]["timings"]["cpu_s"]["total"] / smallest ** 2)
+                _echo(f"scale, {label}: {size}^2 runs at {r['rate_vs_smallest']:.2f}x the rate per megapixel of "
+                      f"{smallest}^2 end to end, and spends {r['cpu_per_megapixel_vs_smallest']:.2f}x its CPU-seconds "
+                      f"per megapixel in the stages")
+        # where each size spends its CPU per megapixel (summed over the tasks, per stage)
+        _echo(f"scale, {label}: CPU-seconds per megapixel by stage")
+        _echo(stage_table({f"{size}^2": {k: v / (size * size / 1e6) for k, v in r["timings"]["cpu_s"].items()}
+                           for size, r in runs.items()}))
     return out
 
 

@@ -20,6 +20,7 @@ aerial images, and a night's throughput against one large detect.
 """
 
 import json
+import resource
 import subprocess
 import sys
 import time
@@ -92,6 +93,12 @@ def _measured(*args, codes=(0,)):
     if proc.returncode not in codes:
         raise RuntimeError(f"rsmb {' '.join(map(str, args))} exited {proc.returncode}: {proc.stderr.strip()[-2000:]}")
     return proc
+
+
+def _child_cpu():
+    """CPU-seconds (user + system) of the finished child processes so far."""
+    use = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return use.ru_utime + use.ru_stime
 
 
 def _user_cut(references, capture, target, resampling=USER_DEFAULT):
@@ -222,17 +229,17 @@ def bench_night(data, workdir, *, captures=8, side=1024, detect_side=4096):
                           hand_cut=work / "large" / "pair")
     megapixels = captures * side * side / 1e6
     cmd = ["survey", *references, "--captures", work / "incoming" / "*.tif", "-o", work / "out", "--json", "--settle", "0"]
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), _child_cpu()
     first = _measured("-q", *cmd, codes=(0, 3))  # 3: some captures failed (counted below)
-    night_s = time.perf_counter() - start
+    night_s, night_cpu = time.perf_counter() - start, _child_cpu() - cpu
     summary = json.loads(first.stdout)
     start = time.perf_counter()
     again = json.loads(_measured("-q", *cmd, codes=(0, 3)).stdout)
     rerun_s = time.perf_counter() - start
     ref, dist = large.reference, large.distorted
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), _child_cpu()
     single = _measured("-q", "detect", ref, dist, "-o", work / "large.zarr")
-    detect_s = time.perf_counter() - start
+    detect_s, detect_cpu = time.perf_counter() - start, _child_cpu() - cpu
     scores = [evaluate(c["output"] + "/changes.zarr", Path(c["capture"]).with_suffix(".truth")).changes.f_measure
               for c in summary["captures"] if c["status"] == "done"]
     out = {"scene": source, "captures": captures, "side": side, "night_s": night_s,
@@ -242,11 +249,19 @@ def bench_night(data, workdir, *, captures=8, side=1024, detect_side=4096):
            "f_measure_min": min(scores) if scores else float("nan"),
            "detect_f_measure": evaluate(work / "large.zarr", work / "large" / "capture.truth").changes.f_measure}
     out["ratio"] = out["night_megapixels_per_s"] / out["detect_megapixels_per_s"]
+    # CPU-seconds per megapixel of each command (its process and the processes it waited for):
+    # what the machine spends, whatever else runs beside
+    out["night_cpu_s_per_megapixel"] = night_cpu / megapixels
+    out["detect_cpu_s_per_megapixel"] = detect_cpu / (detect_side ** 2 / 1e6)
+    out["cpu_ratio"] = out["detect_cpu_s_per_megapixel"] / out["night_cpu_s_per_megapixel"]
     _echo(f"survey night ({source}): {captures} captures of {side} x {side} in {night_s:.1f} s end to end "
           f"({out['night_megapixels_per_s']:.2f} MP/s, {out['done']} done, F >= {out['f_measure_min']:.3f}) vs "
           f"rsmb detect on one {detect_side} x {detect_side} capture of the same scene {detect_s:.1f} s "
           f"({out['detect_megapixels_per_s']:.2f} MP/s, F {out['detect_f_measure']:.3f}): {100 * out['ratio']:.0f} %; the night again "
           f"{rerun_s:.1f} s ({100 * rerun_s / night_s:.0f} % of the first, {out['rerun_skipped']} skipped)")
+    _echo(f"survey night, CPU-seconds per megapixel (user + system of each command): the night "
+          f"{out['night_cpu_s_per_megapixel']:.2f}, detect {out['detect_cpu_s_per_megapixel']:.2f}: the night's rate "
+          f"per CPU-second {100 * out['cpu_ratio']:.0f} % of detect's")
     return out
 
 
