@@ -19,8 +19,9 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
-from ._rowsolve import SOLVED, _solve_huber_nn, _synthesize
-from .._warp import _gather_row
+import math
+
+from ._rowsolve import SOLVED, _column, _Columns, _solve
 
 __all__ = []
 
@@ -29,7 +30,7 @@ _SUMS = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})
 #: numba caches these kernels with the row solver compiled into them, keyed on
 #: this file alone: a change of :mod:`ops.registration._rowsolve` raises this
 #: number, or a checkout that ran the old code keeps running it here.
-ROWSOLVE_REVISION = 2
+ROWSOLVE_REVISION = 3
 
 #: A row whose centroid moves the window's farthest pixel more than this (px)
 #: away from where the path before it leads (its last pose plus its velocity)
@@ -189,33 +190,88 @@ class _Work(NamedTuple):
 
 
 @numba.njit(**_SUMS)
+def _lattice_columns(source, g_valid, a):
+    """The columns of ``F_i`` of one row (:class:`ops.registration._rowsolve._Columns`)
+    without gathering them: the distinct pre-warped rows the poses shift
+    (a few per row of the lattice's other axes), copied once with their no-data
+    (NaN, outside the image) at 0, and the pixels every pose reads valid and
+    the capture has (``g_valid``); ``a`` (K, N) is the work space the solve
+    copies its working set into.  Pose k reads row ``source.y -
+    gather.shift_y[k]`` of ``stack[gather.slot[k]]`` from column ``source.x0
+    - gather.shift_x[k]`` on, as :func:`ops._warp._gather_row` does."""
+    stack, gather = source.stack, source.gather
+    slot, sy, sx = gather.slot, gather.shift_y, gather.shift_x
+    k_count, n = a.shape
+    hr, wr = stack.shape[1], stack.shape[2]
+    lo, hi = sx[0], sx[0]
+    for k in range(k_count):
+        lo, hi = min(lo, sx[k]), max(hi, sx[k])
+    width = n + hi - lo
+    first = np.full(stack.shape[0] * hr, -1, np.int64)  # (slot, row) -> distinct row
+    row_of, col_of = np.zeros(k_count, np.int64), np.empty(k_count, np.int64)
+    pick = np.empty(k_count, np.int64)
+    valid = g_valid.copy()
+    distinct = 0
+    for k in range(k_count):
+        r = source.y - sy[k]
+        col_of[k] = hi - sx[k]
+        if r < 0 or r >= hr:  # a pose above or below the band: no pixel is valid
+            valid[:] = False
+            continue
+        key = slot[k] * hr + r
+        if first[key] < 0:
+            first[key] = distinct
+            pick[distinct] = key
+            distinct += 1
+        row_of[k] = first[key]
+    src = np.zeros((max(distinct, 1), width), np.float32)
+    bad = np.zeros(max(distinct, 1), np.bool_)
+    x0 = source.x0 - hi
+    for q in range(distinct):
+        img = stack[pick[q] // hr, pick[q] % hr]
+        for c in range(width):
+            col = x0 + c
+            if col < 0 or col >= wr or math.isnan(img[col]):
+                bad[q] = True
+            else:
+                src[q, c] = img[col]
+    for k in range(k_count):  # only rows holding no-data are read pixel by pixel
+        q = row_of[k]
+        if bad[q] and source.y - sy[k] >= 0 and source.y - sy[k] < hr:
+            img = stack[slot[k], source.y - sy[k]]
+            for j in range(n):
+                col = source.x0 - sx[k] + j
+                if col < 0 or col >= wr or math.isnan(img[col]):
+                    valid[j] = False
+    return _Columns(src, row_of, col_of, valid, a, np.zeros(k_count, np.bool_))
+
+
+@numba.njit(**_SUMS)
 def _row_step(source, row, settings, w, a):
     """One row of the propagation in a single call (no Python in between):
-    gather ``F_i`` from ``source`` into the work array ``a`` (K, N), solve
-    eq. 13 warm-started from ``w`` (in place), and write the registered row,
-    the change term and the validity into ``row`` (NaN / 0 / False where
-    invalid).  Returns (objective, valid pixel count, whether the solve met
-    its optimality conditions, :data:`ops.registration._rowsolve.SOLVED`);
-    the objective is inf when too few pixels are valid to solve.
+    the row's columns of ``F_i`` from ``source`` (:func:`_lattice_columns`,
+    ``a`` (K, N) their work space), eq. 13 solved warm-started from ``w`` (in
+    place), and the registered row, the change term and the validity written
+    into ``row`` (NaN / 0 / False where invalid).  Returns (objective, valid
+    pixel count, whether the solve met its optimality conditions,
+    :data:`ops.registration._rowsolve.SOLVED`); the objective is inf when too
+    few pixels are valid to solve.
     """
     k_count, n = a.shape
     delta = settings.delta
-    g_row, g_valid = row.g, row.g_valid
+    g_row = row.g
     reg_out, chi_out, valid_out = row.registered, row.chi, row.valid
-    gather = source.gather
-    v = _gather_row(source.stack, gather.slot, gather.shift_y, gather.shift_x, source.y, source.x0, a)
+    cols = _lattice_columns(source, row.g_valid, a)
     g = np.empty(n)
     count = 0
     for j in range(n):
-        ok = v[j] != 0 and g_valid[j]
+        ok = cols.valid[j]
         valid_out[j] = ok
         if ok:
             g[j] = g_row[j]
             count += 1
         else:
             g[j] = 0.0
-            for k in range(k_count):
-                a[k, j] = 0.0
     if count < settings.min_valid:
         for k in range(k_count):
             w[k] = 0.0
@@ -224,10 +280,13 @@ def _row_step(source, row, settings, w, a):
             reg_out[j] = np.nan
             chi_out[j] = 0.0
         return np.inf, count, True
-    obj, _, _, status = _solve_huber_nn(a, g, w, settings.lam, delta, settings.tol, settings.max_outer,
-                                        settings.max_add)
-    reg = np.empty(n)
-    _synthesize(a, w, reg)
+    obj, _, _, status = _solve(cols, g, w, settings.lam, delta, settings.tol, settings.max_outer, settings.max_add)
+    reg = np.zeros(n)
+    for k in range(k_count):
+        if w[k] > 0.0:
+            ak = _column(cols, k)
+            for j in range(n):
+                reg[j] += w[k] * ak[j]
     for j in range(n):
         if valid_out[j]:
             reg_out[j] = reg[j]

@@ -58,16 +58,59 @@ def _huber_value(r, delta):
     return 2.0 * delta * a - delta * delta
 
 
+class _Columns(NamedTuple):
+    """The columns of ``F_i`` (one per pose) a solve reads.
+
+    Pose k's pixel j is ``src[row_of[k], col_of[k] + j]`` (finite values);
+    ``a`` (K, N) float32 holds the column with the invalid pixels (``valid``
+    False) zeroed once ``have[k]``.  A pass of the gradient over every pose
+    reads ``src`` straight; the poses a solve works with are copied into
+    ``a`` on first use (:func:`_column`).  Rows of the propagation keep in
+    ``src`` only the distinct pre-warped rows their poses shift
+    (:func:`ops.registration._propagate_kernels._lattice_columns`); a dense
+    ``a`` is its own ``src`` (:func:`_dense`)."""
+
+    src: np.ndarray
+    row_of: np.ndarray
+    col_of: np.ndarray
+    valid: np.ndarray
+    a: np.ndarray
+    have: np.ndarray
+
+
 @numba.njit(**_JIT)
-def _residual(a, g, w):
+def _dense(a):
+    """:class:`_Columns` of a dense ``a`` (K, N) float32, invalid pixels zeroed."""
+    k_count, n = a.shape
+    return _Columns(a, np.arange(k_count), np.zeros(k_count, np.int64), np.ones(n, np.bool_), a,
+                    np.ones(k_count, np.bool_))
+
+
+@numba.njit(**_JIT)
+def _column(cols, k):
+    """Pose ``k``'s column, invalid pixels zeroed (copied on first use)."""
+    if not cols.have[k]:
+        ak = cols.a[k]
+        c = cols.col_of[k]
+        row = cols.src[cols.row_of[k], c:c + ak.shape[0]]
+        for j in range(ak.shape[0]):
+            ak[j] = row[j] if cols.valid[j] else np.float32(0.0)
+        cols.have[k] = True
+    return cols.a[k]
+
+
+@numba.njit(**_JIT)
+def _residual(cols, g, w):
     """``g - a.T @ w`` over the poses with weight (float64, shape (n,))."""
-    r = np.empty(a.shape[1])
-    for j in range(a.shape[1]):
+    n = cols.a.shape[1]
+    r = np.empty(n)
+    for j in range(n):
         r[j] = g[j]
-    for k in range(a.shape[0]):
+    for k in range(cols.a.shape[0]):
         if w[k] > 0.0:
-            for j in range(a.shape[1]):
-                r[j] -= w[k] * a[k, j]
+            ak = _column(cols, k)
+            for j in range(n):
+                r[j] -= w[k] * ak[j]
     return r
 
 
@@ -89,30 +132,35 @@ def _objective(r, w, lam, delta):
 
 
 @numba.njit(**_SUMS)
-def _gradient(a, r, lam, delta, out):
-    k_count, n = a.shape
+def _gradient(cols, r, lam, delta, out):
+    """The gradient over every pose, read from ``cols.src``: where a pixel
+    is invalid its residual, and so ``psi``, is 0."""
+    k_count, n = cols.a.shape
     psi = np.empty(n)
     for j in range(n):
         psi[j] = _psi(r[j], delta)
     for k in range(k_count):
+        c = cols.col_of[k]
+        row = cols.src[cols.row_of[k], c:c + n]
         acc = 0.0
         for j in range(n):
-            acc += psi[j] * a[k, j]
+            acc += psi[j] * row[j]
         out[k] = lam - acc
 
 
 @numba.njit(**_SUMS)
-def _gradient_of(a, r, lam, delta, out, idx, m):
+def _gradient_of(cols, r, lam, delta, out, idx, m):
     """:func:`_gradient` for the poses ``idx[:m]`` only (the others untouched)."""
-    n = a.shape[1]
+    n = cols.a.shape[1]
     psi = np.empty(n)
     for j in range(n):
         psi[j] = _psi(r[j], delta)
     for p in range(m):
         k = idx[p]
+        ak = _column(cols, k)
         acc = 0.0
         for j in range(n):
-            acc += psi[j] * a[k, j]
+            acc += psi[j] * ak[j]
         out[k] = lam - acc
 
 
@@ -348,7 +396,7 @@ def _dot_weighted(ap, aq, weight):
 
 
 @numba.njit(**_SUMS)
-def _gram_model(cache, a, idx, m, weight, lin, lam, h, b):
+def _gram_model(cache, cols, idx, m, weight, lin, lam, h, b):
     """``h`` (m, m) = the weighted Gram matrix of the poses ``idx[:m]``,
     ``b`` (m,) = their products with ``lin`` less ``lam / 2``: from the
     cache where it holds them, computed (and kept) where not."""
@@ -356,10 +404,10 @@ def _gram_model(cache, a, idx, m, weight, lin, lam, h, b):
     if m > pool:  # a working set larger than the pool: computed afresh
         _gram_clear(cache)
         for p in range(m):
-            ap = a[idx[p]]
+            ap = _column(cols, idx[p])
             b[p] = _dot_lin(ap, lin) - 0.5 * lam
             for q in range(p + 1):
-                h[p, q] = _dot_weighted(ap, a[idx[q]], weight)
+                h[p, q] = _dot_weighted(ap, _column(cols, idx[q]), weight)
                 h[q, p] = h[p, q]
         return
     missing = 0
@@ -376,7 +424,7 @@ def _gram_model(cache, a, idx, m, weight, lin, lam, h, b):
             cache.state[0] += 1
     for p in range(m):
         sp = cache.slot_of[idx[p]]
-        ap = a[idx[p]]
+        ap = _column(cols, idx[p])
         if not cache.b_done[sp]:
             cache.b[sp] = _dot_lin(ap, lin) - 0.5 * lam
             cache.b_done[sp] = True
@@ -384,7 +432,7 @@ def _gram_model(cache, a, idx, m, weight, lin, lam, h, b):
         for q in range(p + 1):
             sq = cache.slot_of[idx[q]]
             if not cache.h_done[sp, sq]:
-                value = _dot_weighted(ap, a[idx[q]], weight)
+                value = _dot_weighted(ap, _column(cols, idx[q]), weight)
                 cache.h[sp, sq] = value
                 cache.h[sq, sp] = value
                 cache.h_done[sp, sq] = True
@@ -423,6 +471,12 @@ def _admit_worst(grad, work, seen, full, max_add, pick):
 
 @numba.njit(**_SUMS)
 def _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=True):
+    """:func:`_iterate` on a dense ``a`` (K, N) float32, invalid pixels zeroed."""
+    return _iterate(_dense(a), g, w, lam, delta, tol_rel, max_outer, max_add, restricted)
+
+
+@numba.njit(**_SUMS)
+def _iterate(cols, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=True):
     """The active-set Newton iterations of :func:`_solve_huber_nn` from ``w``
     (in place).  Returns (objective, outer iterations, how they ended:
     :data:`SOLVED` the KKT conditions hold to ``tol_rel``, :data:`STALLED` no
@@ -436,8 +490,8 @@ def _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add, restrict
     worst violators.  The poses that end with zero weight (most of a row's
     neighbourhood) are then checked a few times per solve instead of at every
     iteration.  False: every iteration passes over every pose."""
-    k_count, n = a.shape
-    r = _residual(a, g, w)
+    k_count, n = cols.a.shape
+    r = _residual(cols, g, w)
     grad = np.empty(k_count)
     work = np.zeros(k_count, dtype=np.bool_)
     part = np.full(n, 2, dtype=np.int8)
@@ -458,16 +512,16 @@ def _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add, restrict
     m = 0
     for it in range(max_outer):
         if full:
-            _gradient(a, r, lam, delta, grad)
+            _gradient(cols, r, lam, delta, grad)
         else:
-            _gradient_of(a, r, lam, delta, grad, idx, m)
+            _gradient_of(cols, r, lam, delta, grad, idx, m)
         viol = _violation(grad, w, seen, full)
         if viol <= tol_rel * max(obj, 1e-30):
             if full:
                 return obj, it, SOLVED, viol
             # optimal on the working set: one pass over every pose confirms it
             full = True
-            _gradient(a, r, lam, delta, grad)
+            _gradient(cols, r, lam, delta, grad)
             viol = _violation(grad, w, seen, full)
             if viol <= tol_rel * max(obj, 1e-30):
                 return obj, it, SOLVED, viol
@@ -524,7 +578,7 @@ def _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add, restrict
                 lin[j] = weight[j] * g[j]
         h = np.empty((m, m))
         b = np.empty(m)
-        _gram_model(cache, a, idx, m, weight, lin, lam, h, b)
+        _gram_model(cache, cols, idx, m, weight, lin, lam, h, b)
         x = np.empty(m)
         for p in range(m):
             x[p] = w[idx[p]]
@@ -537,7 +591,7 @@ def _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add, restrict
             d = x[p] - w[idx[p]]
             slope += lam * d
             if d != 0.0:
-                ap = a[idx[p]]
+                ap = _column(cols, idx[p])
                 for j in range(n):
                     e[j] += d * ap[j]
         t = _line_search(r, e, slope, delta)
@@ -586,16 +640,22 @@ def _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add, restrict
 
 @numba.njit(**_SUMS)
 def _kkt(a, g, w, lam, delta):
+    """:func:`_kkt_of` a dense ``a`` (K, N) float32."""
+    return _kkt_of(_dense(a), g, w, lam, delta)
+
+
+@numba.njit(**_SUMS)
+def _kkt_of(cols, g, w, lam, delta):
     """At ``w``: (objective, KKT violation, bound on the objective's excess
     over the optimum).  The violation is the largest ``|grad_k|`` over the
     support and ``-grad_k`` off it; the bound is convexity's
     ``grad . (w - w*) <= grad . w + max(-grad)+ sum(w*)`` with
     ``lam sum(w*) <= objective`` (inf when ``lam`` is 0)."""
-    k_count, n = a.shape
-    r = _residual(a, g, w)
+    k_count, n = cols.a.shape
+    r = _residual(cols, g, w)
     obj = _objective(r, w, lam, delta)
     grad = np.empty(k_count)
-    _gradient(a, r, lam, delta, grad)
+    _gradient(cols, r, lam, delta, grad)
     viol, along, most = 0.0, 0.0, 0.0
     for k in range(k_count):
         if w[k] > 0.0:
@@ -609,6 +669,12 @@ def _kkt(a, g, w, lam, delta):
 
 @numba.njit(**_SUMS)
 def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
+    """:func:`_solve` on a dense ``a`` (K, N) float32, invalid pixels zeroed."""
+    return _solve(_dense(a), g, w, lam, delta, tol_rel, max_outer, max_add)
+
+
+@numba.njit(**_SUMS)
+def _solve(cols, g, w, lam, delta, tol_rel, max_outer, max_add):
     """Minimise sum rho(g - a' w) + lam sum w over w >= 0 (in place).
 
     ``a`` (K, N) float32 with zero columns for invalid pixels, ``g`` (N,) with
@@ -620,14 +686,14 @@ def _solve_huber_nn(a, g, w, lam, delta, tol_rel, max_outer, max_add):
     ``tol_rel`` of the optimum (:func:`_kkt`), else :data:`LIMIT` or
     :data:`STALLED` by how the last attempt ended.
     """
-    obj, it, how, viol = _huber_nn_iterate(a, g, w, lam, delta, tol_rel, max_outer, max_add)
+    obj, it, how, viol = _iterate(cols, g, w, lam, delta, tol_rel, max_outer, max_add)
     if how == SOLVED:
         return obj, it, viol, SOLVED
-    obj, more, how, viol = _huber_nn_iterate(a, g, w, lam, delta, tol_rel, 4 * max_outer, a.shape[0])
+    obj, more, how, viol = _iterate(cols, g, w, lam, delta, tol_rel, 4 * max_outer, cols.a.shape[0])
     it += more
     if how == SOLVED:
         return obj, it, viol, SOLVED
-    obj, viol, gap = _kkt(a, g, w, lam, delta)
+    obj, viol, gap = _kkt_of(cols, g, w, lam, delta)
     bound = tol_rel * max(obj, 1e-30)
     if viol <= bound or gap <= bound:
         return obj, it, viol, SOLVED

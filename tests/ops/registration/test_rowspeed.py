@@ -123,3 +123,90 @@ def test_admit_worst_picks_the_most_negative_gradients(full):
         got = work.copy()
         _admit_worst(grad, got, seen, full, max_add, np.empty(max(max_add, 1), np.int64))
         np.testing.assert_array_equal(got, expected, err_msg=str(trial))
+
+
+# ------------------------------------------------ columns read from pre-warped rows
+
+
+def _stack_and_gather(seed, nan_share):
+    """A stack of pre-warped images with no-data, and a lattice of poses
+    reading it (slots by the other axis, whole-pixel shifts), some of them
+    beyond the stack's columns."""
+    rng = np.random.default_rng(seed)
+    stack = rng.uniform(0.1, 0.9, (5, 40, 90)).astype(np.float32)
+    stack[rng.random(stack.shape) < nan_share] = np.nan
+    slot, shift_y, shift_x = [], [], []
+    for rot in range(3):
+        for dy in range(-2, 3):
+            for dx in range(-3, 4):
+                slot.append(1 + rot)
+                shift_y.append(dy)
+                shift_x.append(dx + (8 if seed % 2 else 0))
+    return stack, np.array(slot), np.array(shift_y), np.array(shift_x)
+
+
+@pytest.mark.parametrize("seed, nan_share", [(0, 0.0), (1, 0.0), (2, 0.002), (3, 0.01)])
+def test_lattice_columns_equal_gathered_rows(seed, nan_share):
+    """Each pose's column read from the distinct pre-warped rows equals the
+    gathered row (:func:`_gather_row`), the valid pixels are the same (no-data,
+    columns beyond the stack, the capture's own no-data), and the gradient
+    over every pose read from those rows equals the one over the gathered
+    matrix."""
+    from rsmb.ops._warp import _gather_row
+    from rsmb.ops.registration._propagate_kernels import _Gather, _lattice_columns, _Source
+    from rsmb.ops.registration._rowsolve import _column, _dense, _gradient
+
+    stack, slot, shift_y, shift_x = _stack_and_gather(seed, nan_share)
+    n, x0, y = 80, 6, 20
+    rng = np.random.default_rng(50 + seed)
+    g_valid = rng.random(n) > 0.05
+    gathered = np.empty((len(slot), n), np.float32)
+    v = _gather_row(stack, slot, shift_y, shift_x, y, x0, gathered)
+    valid = (v != 0) & g_valid
+    gathered[:, ~valid] = 0.0
+    cols = _lattice_columns(_Source(stack, _Gather(slot, shift_y, shift_x), y, x0), g_valid,
+                            np.full((len(slot), n), np.nan, np.float32))
+    np.testing.assert_array_equal(cols.valid, valid)
+    assert 0 < valid.sum() < n if (nan_share or seed % 2) else valid.sum() == g_valid.sum()
+    assert cols.src.shape[0] == 15  # 3 slots x 5 rows: what the 105 poses shift
+    for k in range(len(slot)):
+        np.testing.assert_array_equal(_column(cols, k), gathered[k])
+    r = np.where(valid, rng.normal(0.0, 0.02, n), 0.0)
+    grad, grad_dense = np.empty(len(slot)), np.empty(len(slot))
+    _gradient(cols, r, 1e-3, 0.01, grad)
+    _gradient(_dense(gathered), r, 1e-3, 0.01, grad_dense)
+    np.testing.assert_allclose(grad, grad_dense, rtol=1e-12, atol=1e-15)
+
+
+def test_rows_of_the_propagation_as_solved_before(rows):
+    """A propagation row solved on its columns read from pre-warped rows
+    (:func:`_row_step`) gives the weights, registered row and change term of
+    the gathered matrix solved by the previous solver."""
+    from rsmb.ops.registration._propagate_kernels import _Gather, _Row, _row_step, _Source, _Settings
+
+    pair = ops.synthesize_pair(SHAPE, motion="inplane", changes=4, noise=0.002, seed=3)
+    params = ops.RegistrationParams().resolved(pair.camera)
+    space = params.space
+    problem = _RowProblem(pair.reference, pair.distorted, np.ones(SHAPE, bool), pair.camera, (0, 0), (0, 0),
+                          params.axes, params.step, 40)
+    axes = [ops.POSE_AXES.index(a) for a in params.axes]
+    settings = _Settings(params.lambda_w, 0.5 * params.lambda_chi, params.tol, params.max_outer, params.max_add, 16)
+    w = np.zeros(space.size)
+    for i in ROWS[::5]:
+        index, poses = space.grid(pair.trajectory[i, axes])
+        slots, shift_y, shift_x, y = problem.gather_args(i, index, poses)
+        a, g, valid = problem.build([i], index, poses)
+        w0 = w.copy()
+        out = _Row(pair.distorted[i], np.ones(SHAPE[1], bool), np.empty(SHAPE[1], np.float32),
+                   np.empty(SHAPE[1], np.float32), np.empty(SHAPE[1], bool))
+        work = np.empty((space.size, SHAPE[1]), np.float32)
+        obj, count, converged = _row_step(_Source(problem.stack, _Gather(slots, shift_y, shift_x), y, problem.margin),
+                                          out, settings, w, work)
+        obj0, _, _, status0 = previous._solve_huber_nn(a, g.astype(np.float64), w0, params.lambda_w,
+                                                        0.5 * params.lambda_chi, params.tol, params.max_outer,
+                                                        params.max_add)
+        assert converged and status0 == SOLVED and count == valid.sum()
+        assert obj == pytest.approx(obj0, rel=1e-9)
+        np.testing.assert_allclose(w, w0, atol=1e-6 * w0.sum())
+        np.testing.assert_array_equal(out.valid, valid)
+        np.testing.assert_allclose(out.registered[valid], a.T.astype(np.float64)[valid] @ w0, atol=1e-5)
