@@ -398,9 +398,9 @@ def bench_scale(workdir, *, sizes=(2048, 4096, 8192), tiles=(None, 512)):
                 r["rate_vs_smallest"] = r["megapixels_per_s"] / runs[smallest]["megapixels_per_s"]
                 r["cpu_per_megapixel_vs_smallest"] = (r["timings"]["cpu_s"]["total"] / size ** 2) / (
                     runs[smallest]["timings"]["cpu_s"]["total"] / smallest ** 2)
-                _echo(f"scale, {label}: {size}^2 runs at {r['rate_vs_smallest']:.2f}x the rate per megapixel of "
-                      f"{smallest}^2 end to end, and spends {r['cpu_per_megapixel_vs_smallest']:.2f}x its CPU-seconds "
-                      f"per megapixel in the stages")
+                _echo(f"scale, {label}: {size}^2 runs at {r['rate_vs_smallest']:.2f}x {smallest}^2's MP/s end to "
+                      f"end and spends {r['cpu_per_megapixel_vs_smallest']:.2f}x its CPU-seconds per megapixel in the "
+                      f"stages")
         # where each size spends its CPU per megapixel (summed over the tasks, per stage)
         _echo(f"scale, {label}: CPU-seconds per megapixel by stage")
         _echo(stage_table({f"{size}^2": {k: v / (size * size / 1e6) for k, v in r["timings"]["cpu_s"].items()}
