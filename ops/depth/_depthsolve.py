@@ -34,7 +34,7 @@ import numpy as np
 
 from .._camera import full_poses
 from ._depthmap import _geometry, _RowPoses, _sample, depth_map
-from ._layers import depth_layers
+from ._layers import depth_layers, sees_a_layer_elsewhere
 from .._oracle import _huber_loss, optimal_chi
 from ..registration._rowproblem import _centroid, _Solver
 from ..registration._rowsolve import MAX_ADD, MAX_OUTER, TOL, _solve_huber_nn
@@ -135,9 +135,17 @@ def _one_step(registration, reference, g, windows, allowed=None):
     (on ``allowed`` pixels)."""
     layers = depth_layers(registration, reference, g, **windows)
     layered = dataclasses.replace(registration, registered=layers.registered, chi=layers.chi)
-    # what a layer's depth left unexplained on or against it is judged at that depth only
-    allowed = ~layers.kept if allowed is None else allowed & ~layers.kept
     dense = depth_map(layered, reference, g, allowed=allowed, **windows)
+    # no change candidate borrows a layer's values at another depth than the layer's
+    candidates = (dense.inverse_depth != 1.0) & registration.valid & ~(np.abs(g - layered.registered) <= windows["threshold"])
+    borrowed = sees_a_layer_elsewhere(layers, registration, candidates, dense.inverse_depth,
+                                      **{k: windows[k] for k in ("camera", "reference_origin_yx",
+                                                                 "distorted_origin_yx")})
+    if borrowed.any():
+        dense.registered[borrowed] = layered.registered[borrowed]
+        dense.chi[borrowed] = layered.chi[borrowed]
+        dense.inverse_depth[borrowed] = 1.0
+        dense.explained &= ~borrowed
     layers.registered, layers.chi = dense.registered, dense.chi
     layers.parallax = layers.parallax | dense.explained
     return layers, dense

@@ -39,7 +39,7 @@ from .._oracle import optimal_chi
 from ..changes._changes import large_components
 from ._depthmap import _geometry, _RowPoses, render_at
 
-__all__ = ["LayerParams", "LayerResult", "depth_layers"]
+__all__ = ["LayerParams", "LayerResult", "depth_layers", "sees_a_layer_elsewhere"]
 
 MIN_EXPLAINED = 0.25
 MIN_COVERED = 0.6
@@ -77,11 +77,19 @@ class LayerResult:
     kept : ndarray of bool, shape (H, W)
         Pixels of those components that their depth does not explain and that
         do not see ground the layer hid: change candidates still (a new object
-        on or against the layer), to be judged at that depth only.
+        on or against the layer).
+    on_layer : ndarray of bool, shape (H, W)
+        Those of ``kept`` that, carried at the layer's depth, fall on its
+        footprint (a new object on the roof): judged against the layer
+        (``registered`` the layer at its depth), at that depth only.
     components : list of dict
         Per layer: ``row``, ``col`` (centroid, window pixels), ``pixels``,
         ``depth``, ``explained`` (fraction) and ``rmse`` (intensity units, over
         its explained pixels).
+    footprint : ndarray of int32, shape (Hr, Wr), or None
+        Where each layer lies in the reference window: ``k + 1`` for
+        ``components[k]`` (a later layer over an earlier one), 0 elsewhere;
+        None when no layer was found.
     """
 
     parallax: np.ndarray
@@ -89,10 +97,14 @@ class LayerResult:
     chi: np.ndarray
     kept: np.ndarray = None
     components: list = field(default_factory=list)
+    footprint: np.ndarray = None
+    on_layer: np.ndarray = None
 
     def __post_init__(self):
         if self.kept is None:
             self.kept = np.zeros(self.parallax.shape, bool)
+        if self.on_layer is None:
+            self.on_layer = np.zeros(self.parallax.shape, bool)
 
 
 def depth_layers(registration, reference, distorted, *, camera, threshold, reference_origin_yx=(0, 0),
@@ -153,6 +165,16 @@ class _Frame:
         self.scene = _RowPoses.of(registration, distorted.shape[0]).scene(
             self.ref, _geometry(camera, reference_origin_yx, distorted_origin_yx))
 
+    @classmethod
+    def light(cls, registration, reference_shape, camera, reference_origin_yx, distorted_origin_yx):
+        """A frame for :func:`_to_reference` only (no reference values, no scene)."""
+        frame = cls.__new__(cls)
+        frame.reg, frame.ref, frame.camera, frame.origin = registration, np.zeros(reference_shape, np.float32), camera, \
+            reference_origin_yx
+        frame.dy = int(distorted_origin_yx[0] - reference_origin_yx[0])
+        frame.dx = int(distorted_origin_yx[1] - reference_origin_yx[1])
+        return frame
+
     def render(self, rows, cols, q):
         """The registered window ``rows`` x ``cols`` re-rendered at inverse depth
         ``q``: float32, NaN where a row has no weights or a pose leaves the reference."""
@@ -193,15 +215,67 @@ def _test_component(frame, box, component, depths, threshold, min_area):
     seen = np.abs(g - rendered) < threshold
     lab, _ = ndimage.label(seen, structure=np.ones((3, 3)))
     seen = np.isin(lab, np.unique(lab[decisive & seen])) & (lab > 0)
-    disoccluded = _disoccluded(frame, box, component & ~explained & ~edge, seen | explained, decisive,
-                               1.0 / depth) | edge
+    footprint = _footprint(frame, box, seen | explained, decisive, 1.0 / depth)
+    disoccluded = _disoccluded(frame, box, component & ~explained & ~edge, footprint, 1.0 / depth) | edge
     if count + disoccluded.sum() < MIN_COVERED * pixels:
         return None
     # what is left of the layer in pieces smaller than a change, or thinner than
     # 3 px (a rim along its edge), is its remnant
     rest = component & ~explained & ~disoccluded
     body = ndimage.binary_propagation(ndimage.binary_erosion(rest, np.ones((3, 3), bool)), mask=rest)
-    return depth, rendered, explained, disoccluded | (rest & ~(large_components(rest, min_area) & body))
+    disoccluded |= rest & ~(large_components(rest, min_area) & body)
+    # what is left sees the layer (carried at its depth, it falls on the layer's
+    # footprint: a new object on the roof) or the ground beside it
+    rest = component & ~explained & ~disoccluded
+    on_layer = np.zeros_like(rest)
+    if rest.any() and footprint.any():
+        on_layer[rest] = _lookup(footprint, _to_reference(frame, box, rest, 1.0 / depth))
+    return depth, rendered, explained, disoccluded, footprint, on_layer
+
+
+def sees_a_layer_elsewhere(layers, registration, pixels, inverse_depth, *, camera, reference_origin_yx=(0, 0),
+                           distorted_origin_yx=(0, 0), tolerance=2.0):
+    """Which of ``pixels`` would, at their ``inverse_depth``, see a layer of
+    ``layers`` at a depth other than the layer's own: carried by their row's
+    centroid pose at that inverse depth, they land on the layer's footprint in
+    the reference, and that inverse depth moves them by more than
+    ``tolerance`` px more or less than the layer's does.  The reference shows
+    the layer at its own depth, so no other depth may borrow its values (a new
+    object beside a bright roof is not the roof seen at another depth).
+
+    Parameters
+    ----------
+    layers : LayerResult
+    registration : Registration
+    pixels : ndarray of bool, shape (H, W)
+    inverse_depth : ndarray of float32, shape (H, W)
+        Relative inverse depth per pixel (1: the registered plane).
+    camera : Camera
+    reference_origin_yx, distorted_origin_yx : tuple of int
+    tolerance : float
+        Pixels.
+
+    Returns
+    -------
+    ndarray of bool, shape (H, W)
+    """
+    out = np.zeros(pixels.shape, bool)
+    if layers.footprint is None or not pixels.any():
+        return out
+    frame = _Frame.light(registration, layers.footprint.shape, camera, reference_origin_yx, distorted_origin_yx)
+    whole = (slice(0, pixels.shape[0]), slice(0, pixels.shape[1]))
+    q = inverse_depth[pixels].astype(np.float64)
+    points = np.round(_to_reference(frame, whole, pixels, q)).astype(int)
+    r, c = points.T
+    ok = (r >= 0) & (c >= 0) & (r < layers.footprint.shape[0]) & (c < layers.footprint.shape[1])
+    label = np.zeros(len(q), np.int32)
+    label[ok] = layers.footprint[r[ok], c[ok]]
+    layer_q = np.array([0.0] + [1.0 / comp["depth"] for comp in layers.components])[label]
+    rows = np.nonzero(pixels)[0]
+    p6 = full_poses(registration.trajectory[rows], registration.axes)
+    shift = np.hypot(p6[:, 0], p6[:, 1])  # px a unit of inverse depth moves the pixel
+    out[pixels] = (label > 0) & (np.abs(q - layer_q) * np.maximum(shift, 1.0) > tolerance)
+    return out
 
 
 def _edge(pixels, explained, rendered, g, threshold):
@@ -215,18 +289,24 @@ def _edge(pixels, explained, rendered, g, threshold):
     return pixels & near & (g >= lo - threshold) & (g <= hi + threshold)
 
 
-def _disoccluded(frame, box, pixels, explained, decisive, q):
-    """Which of ``pixels`` (window box) see, on the ground, a point that the
-    layer at inverse depth ``q`` covered in the reference, and do not see the layer
-    itself (carried at ``depth``, they fall off it): the ground the layer hid.
-    The layer's footprint is where its ``explained`` pixels come from, holes
+def _footprint(frame, box, explained, decisive, q):
+    """The layer at inverse depth ``q`` in the reference window (bool, its
+    shape): where its ``explained`` pixels (window box) come from, holes
     filled (objects on it included), within the convex hull of where its
     ``decisive`` pixels (explained at that depth only) come from: flat ground
     beside a layer is explained at its depth too and would widen it."""
-    if not pixels.any() or not decisive.any():
+    if not decisive.any():
+        return np.zeros(frame.ref.shape, bool)
+    return _filled(frame, _to_reference(frame, box, explained, q)) & _hull(frame, _to_reference(frame, box, decisive, q))
+
+
+def _disoccluded(frame, box, pixels, footprint, q):
+    """Which of ``pixels`` (window box) see, on the ground, a point that the
+    layer at inverse depth ``q`` (its reference ``footprint``) covered in the
+    reference, and do not see the layer itself (carried at ``q``, they fall
+    off it): the ground the layer hid."""
+    if not pixels.any() or not footprint.any():
         return np.zeros_like(pixels)
-    footprint = _filled(frame, _to_reference(frame, box, explained, q)) & \
-        _hull(frame, _to_reference(frame, box, decisive, q))
     near = cv2.dilate(footprint.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     hit = _lookup(near, _to_reference(frame, box, pixels, 1.0)) & \
         ~_lookup(footprint, _to_reference(frame, box, pixels, q))
@@ -272,13 +352,14 @@ def _lookup(mask, points):
 
 def _to_reference(frame, box, pixels, q):
     """Reference-window (row, col) of the window ``pixels`` (bool in ``box``)
-    carried by each row's centroid pose at inverse depth ``q``."""
+    carried by each row's centroid pose at inverse depth ``q`` (a number, or
+    one per pixel of ``pixels``, in their order)."""
     rows, cols = np.nonzero(pixels)
     rows = rows + box[0].start
     cols = cols + box[1].start
     poses = frame.reg.trajectory[rows].copy()
     p6 = full_poses(poses, frame.reg.axes)
-    p6[:, :3] *= q
+    p6[:, :3] *= np.reshape(np.asarray(q, np.float64), (-1, 1))
     window_rows = rows + frame.dy
     hom = pose_homographies(p6, frame.camera, origin_yx=frame.origin, inverse=True)
     pts = hom @ np.stack([cols + frame.dx, window_rows, np.ones(len(rows))])[None].transpose(2, 1, 0)
@@ -291,13 +372,20 @@ def _mark(out, frame, box, component, found, lambda_chi):
     re-rendered there and join ``parallax``, with the ground it hid
     (disoccluded: no evidence, ``chi`` 0); the rest of the component (a new
     object on or against the layer) keeps the registration's ``chi``."""
-    depth, rendered, explained, disoccluded = found
+    depth, rendered, explained, disoccluded, footprint, on_layer = found
+    if footprint.any():
+        if out.footprint is None:
+            out.footprint = np.zeros(footprint.shape, np.int32)
+        out.footprint[footprint] = len(out.components) + 1
     out.parallax[box] |= explained | disoccluded
     g = frame.dist[box]
     reg, chi = out.registered[box], out.chi[box]
     reg[explained] = rendered[explained]
     chi[explained] = optimal_chi(g[explained] - rendered[explained], lambda_chi=lambda_chi)
     chi[disoccluded & ~explained] = 0.0
+    reg[on_layer] = rendered[on_layer]  # judged against the layer it lies on
+    out.on_layer[box] |= on_layer
+    chi[on_layer] = optimal_chi(g[on_layer] - rendered[on_layer], lambda_chi=lambda_chi)
     out.kept[box] |= component & ~explained & ~disoccluded
     rows, cols = np.nonzero(component)
     residual = (g - rendered)[explained]

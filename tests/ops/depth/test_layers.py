@@ -112,3 +112,29 @@ def test_one_renderer_at_inverse_depth_is_the_row_warp_at_depth(raised):
         assert np.isfinite(want).mean() > 0.9
         np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
         np.testing.assert_allclose(got, want, rtol=0, atol=2e-6)
+
+
+def test_an_object_on_a_roof_is_judged_against_the_roof():
+    """A new object on a roof that its component's depth leaves unexplained is
+    compared with the roof at that depth (what it lies on), not with the ground
+    the registered plane samples there: it keeps its full contrast and stays a
+    change.  Seed 6 of the small case: with the plane's values two thirds of
+    the object were lost to the change rule's half-maximum test."""
+    from rsmb.ops.synthetic._raised import ON_ROOF, raised_pair
+
+    pair, objects = raised_pair((256, 256), seed=6, blocks=2, away=1, block_size=(36, 48), object_size=(14, 20))
+    changes, params = ops.ChangeParams(), ops.RegistrationParams()
+    reg = ops.register(pair.reference, pair.distorted, camera=pair.camera, params=params)
+    threshold = ops.detect_changes(reg, pair.distorted, camera=pair.camera).threshold
+    reg = ops.reground(reg, pair.reference, pair.distorted, camera=pair.camera, params=params, threshold=threshold)
+    layers, _, _ = ops.depth_step(reg, pair.reference, pair.distorted, camera=pair.camera, threshold=threshold,
+                                  space=params.resolved(pair.camera).space, lambda_w=params.lambda_w,
+                                  lambda_chi=params.lambda_chi)
+    roof = next(m for kind, m in objects if kind == ON_ROOF)
+    assert layers.on_layer[roof].mean() >= 0.5  # most of it is its layer's component, judged there
+    # the model there is the roof (bright), the object dark: its residual is the object's contrast
+    judged = roof & layers.on_layer
+    assert np.median(layers.registered[judged] - pair.distorted[judged]) >= 0.5
+    score = np.where(layers.parallax | ~reg.valid, 0.0, ops.change_score(layers.chi, layers.registered, params=changes))
+    mask = ops.change_mask(score, threshold, params=changes)
+    assert mask[roof].mean() >= 0.9 and layers.parallax[roof].mean() <= 0.05
