@@ -5,7 +5,8 @@ any tile is registered.
 
 Each tile then registers on a reference pre-warped by that slow part.  Found
 on the image at a coarser scale, it costs the same small amount per image
-whatever its size (a fixed cost per capture of a survey night); where there is
+up to 8192 px on a side (a fixed cost per capture of a survey night; beyond,
+the overview grows with the image, at most 8 times coarser); where there is
 none (an in-plane capture), the tiles pay nothing.  The fit runs as one task
 on the runner, under its one-thread settings.
 """
@@ -26,13 +27,19 @@ __all__ = ["overview_factor", "slow_stage"]
 #: The overview's smaller side is at least this many pixels.
 OVERVIEW_SIDE = 512
 
+#: The overview is at most this many times coarser than the capture: the
+#: slow part's smallest effect worth keeping (``ops.registration._slow.SLOW_MIN_PX``
+#: capture pixels) must stay about a tenth of an overview pixel or more, what a
+#: dense flow resolves; 16 times coarser it is a twentieth.
+OVERVIEW_MAX_FACTOR = 8
+
 
 def overview_factor(shape):
     """The overview's reduction: the largest power of two that leaves the
     capture's smaller side at least :data:`OVERVIEW_SIDE` px (1 for small
-    captures)."""
+    captures), at most :data:`OVERVIEW_MAX_FACTOR`."""
     factor = 1
-    while min(shape) // (2 * factor) >= OVERVIEW_SIDE:
+    while min(shape) // (2 * factor) >= OVERVIEW_SIDE and 2 * factor <= OVERVIEW_MAX_FACTOR:
         factor *= 2
     return factor
 
