@@ -55,6 +55,18 @@ def test_without_parallax_nothing_is_a_layer():
     assert all(c["pixels"] < 60 for c in layers.components)  # at most a few stray residual specks
 
 
+def _tile_method(pair, params):
+    """Register, re-ground and run the depth step as ``rsmb detect`` does a tile:
+    the registration, the change threshold and the depth layers."""
+    reg = ops.register(pair.reference, pair.distorted, camera=pair.camera, params=params)
+    threshold = ops.detect_changes(reg, pair.distorted, camera=pair.camera).threshold
+    reg = ops.reground(reg, pair.reference, pair.distorted, camera=pair.camera, params=params, threshold=threshold)
+    layers, _, _ = ops.depth_step(reg, pair.reference, pair.distorted, camera=pair.camera, threshold=threshold,
+                                  space=params.resolved(pair.camera).space, lambda_w=params.lambda_w,
+                                  lambda_chi=params.lambda_chi)
+    return reg, threshold, layers
+
+
 @pytest.mark.parametrize("seed", [1, 7])
 def test_objects_on_and_against_a_block_stay_changes(seed):
     """Parallax per pixel (issue 15): a new object on a roof or touching a block
@@ -65,12 +77,7 @@ def test_objects_on_and_against_a_block_stay_changes(seed):
 
     pair, objects = raised_pair((256, 256), seed=seed, blocks=2, away=1, block_size=(36, 48), object_size=(14, 20))
     changes, params = ops.ChangeParams(), ops.RegistrationParams()
-    reg = ops.register(pair.reference, pair.distorted, camera=pair.camera, params=params)
-    threshold = ops.detect_changes(reg, pair.distorted, camera=pair.camera).threshold
-    reg = ops.reground(reg, pair.reference, pair.distorted, camera=pair.camera, params=params, threshold=threshold)
-    layers, _, _ = ops.depth_step(reg, pair.reference, pair.distorted, camera=pair.camera, threshold=threshold,
-                                  space=params.resolved(pair.camera).space, lambda_w=params.lambda_w,
-                                  lambda_chi=params.lambda_chi)
+    reg, threshold, layers = _tile_method(pair, params)
     score = np.where(layers.parallax | ~reg.valid, 0.0, ops.change_score(layers.chi, layers.registered, params=changes))
     mask = ops.change_mask(score, threshold, params=changes)
     near = [m for kind, m in objects if kind != AWAY]
@@ -124,12 +131,7 @@ def test_an_object_on_a_roof_is_judged_against_the_roof():
 
     pair, objects = raised_pair((256, 256), seed=6, blocks=2, away=1, block_size=(36, 48), object_size=(14, 20))
     changes, params = ops.ChangeParams(), ops.RegistrationParams()
-    reg = ops.register(pair.reference, pair.distorted, camera=pair.camera, params=params)
-    threshold = ops.detect_changes(reg, pair.distorted, camera=pair.camera).threshold
-    reg = ops.reground(reg, pair.reference, pair.distorted, camera=pair.camera, params=params, threshold=threshold)
-    layers, _, _ = ops.depth_step(reg, pair.reference, pair.distorted, camera=pair.camera, threshold=threshold,
-                                  space=params.resolved(pair.camera).space, lambda_w=params.lambda_w,
-                                  lambda_chi=params.lambda_chi)
+    reg, threshold, layers = _tile_method(pair, params)
     roof = next(m for kind, m in objects if kind == ON_ROOF)
     assert layers.on_layer[roof].mean() >= 0.5  # most of it is its layer's component, judged there
     # the model there is the roof (bright), the object dark: its residual is the object's contrast
