@@ -118,12 +118,13 @@ def run_method(reference, capture, *, camera, params=None, changes=None, intensi
     result = reground(result, ref, dist, camera=camera, params=params, threshold=threshold,
                       min_area=changes.min_area, distorted_valid=valid, **origins)
     with clock.stage("score"):
-        result = _fitted_beside_clipped(result, capture, reference, intensity, camera, params, origins)
+        bounds = _clip_bounds(result, capture, reference, intensity, camera, origins)
+        result = _fitted_beside_clipped(result, distorted, bounds, params)
     with clock.stage("depth"):
         layers = _depth(result, ref, dist, camera, params, changes, origins)
     with clock.stage("score"):
         chi, model, known = layers.chi, layers.registered, result.valid
-        bounded = _bounded(capture, reference, intensity, result, camera, params, origins)
+        bounded = _bounded(capture, intensity, result, bounds, params)
         if bounded is not None:  # the pixels the plane left unscored: their model interval decides
             chi = np.where(result.valid, chi, bounded[0])
             model = np.where(result.valid, model, bounded[1])
@@ -178,28 +179,41 @@ def _depth(result, reference, capture, camera, params, changes, origins):
     return out
 
 
-def _bounded(capture, reference, intensity, result, camera, params, origins):
+def _bounded(capture, intensity, result, bounds, params):
     """The change term of the capture pixels the registration left without a
     model (its row solves leave clipped pixels out, so a pixel whose search
     grid touches one, or a clipped capture pixel, has none): each pixel's
-    model interval from its row's active poses and blur, with clipped pixels
-    as bounds (:func:`model_bounds`, :func:`bounded_score`).  Returns (chi,
-    model) on the common scale, NaN where there is no evidence, or None when
-    nothing is clipped (no intensity scale) or every capture pixel with data
-    has its model.  ``capture``, ``reference``: the windows as ingested."""
+    model interval from its row's active poses and blur (``bounds``:
+    :func:`_clip_bounds`), with clipped pixels as bounds
+    (:func:`bounded_score`).  Returns (chi, model) on the common scale, NaN
+    where there is no evidence, or None when nothing is clipped (no
+    intensity scale) or every capture pixel with data has its model.
+    ``capture``: the window as ingested."""
     need = ~result.valid & np.isfinite(capture)
-    if intensity is None or not need.any():
+    if bounds is None or not need.any():
         return None
     factor = np.float32(intensity.scaled(1.0))
-    ref_high, ref_low = _at_clip(reference, intensity.reference_clip)
-    bounds = model_bounds(result, reference * factor, ref_high, ref_low, need, camera=camera,
-                          **origins)  # clipped reference pixels at their clip levels
     cap_high, cap_low = _at_clip(capture, intensity.capture_clip)
     chi = bounded_score(capture * factor, bounds, cap_high, cap_low, lambda_chi=params.lambda_chi)
     return np.where(need, chi, np.nan), bounds.model
 
 
-def _fitted_beside_clipped(result, capture, reference, intensity, camera, params, origins):
+def _clip_bounds(result, capture, reference, intensity, camera, origins):
+    """The model interval (:func:`model_bounds`) of every capture pixel with
+    data that the registration left without a model, clipped reference pixels
+    as bounds; None when nothing is clipped (no intensity scale) or every such
+    pixel has its model.  Computed once: it depends only on the rows' active
+    poses, which the steps after it do not change.  ``capture``,
+    ``reference``: the windows as ingested."""
+    need = ~result.valid & np.isfinite(capture)
+    if intensity is None or not need.any():
+        return None
+    factor = np.float32(intensity.scaled(1.0))
+    ref_high, ref_low = _at_clip(reference, intensity.reference_clip)
+    return model_bounds(result, reference * factor, ref_high, ref_low, need, camera=camera, **origins)
+
+
+def _fitted_beside_clipped(result, distorted, bounds, params):
     """The registration with the pixels that lost their model only to the
     row solves' search grid given it back.  A row solve leaves out every
     pixel whose search grid touches a clipped reference pixel (a disk as
@@ -210,17 +224,12 @@ def _fitted_beside_clipped(result, capture, reference, intensity, camera, params
     ``valid`` are set, so that the depth steps and the score treat it as
     fitted (the depth map charges a pixel without a model the threshold,
     so any depth would seem to explain the pixels around every clipped
-    one).  ``capture``, ``reference``: the windows as ingested."""
-    if intensity is None:
+    one).  ``distorted``: the capture on the common scale (NaN: clipped or
+    no-data); ``bounds``: :func:`_clip_bounds`."""
+    if bounds is None:
         return result
-    factor = np.float32(intensity.scaled(1.0))
-    distorted = intensity.apply(capture, "capture")  # NaN: clipped or no-data
-    need = ~result.valid & np.isfinite(distorted)
-    if not need.any():
-        return result
-    ref_high, ref_low = _at_clip(reference, intensity.reference_clip)
-    bounds = model_bounds(result, reference * factor, ref_high, ref_low, need, camera=camera, **origins)
-    point = need & np.isfinite(bounds.model) & (bounds.high_share == 0) & (bounds.low_share == 0)
+    point = (~result.valid & np.isfinite(distorted) & np.isfinite(bounds.model) & (bounds.high_share == 0)
+             & (bounds.low_share == 0))
     if not point.any():
         return result
     registered, chi, valid = result.registered.copy(), result.chi.copy(), result.valid.copy()
