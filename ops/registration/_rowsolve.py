@@ -12,7 +12,8 @@ method for this piecewise-quadratic problem:
 1. fix the partition of pixels into inliers (``|r| <= d``) and outliers and the
    working set of poses (those with ``w > 0`` plus the worst KKT violators);
 2. solve the resulting bound-constrained quadratic exactly (Lawson-Hanson active
-   set with a Cholesky factorisation of the small Gram matrix);
+   set with a Cholesky factor of the small Gram matrix, updated as poses enter
+   and leave the free set);
 3. take an exact line search on the true Huber objective towards that point;
 4. stop when the KKT conditions of the full problem hold to ``tol``.
 
@@ -36,7 +37,7 @@ TOL, MAX_OUTER, MAX_ADD = 1e-6, 100, 8
 
 __all__ = []
 
-#: Most steps of iterative refinement of a Newton system (:func:`_cholesky_solve`).
+#: Most steps of iterative refinement of a Newton system (:func:`_factor_solve`).
 REFINE_STEPS = 8
 
 #: How a row solve ended (:func:`_solve_huber_nn`): the optimality conditions
@@ -176,9 +177,8 @@ def _violation(grad, w, seen, full):
 
 
 @numba.njit(**_JIT)
-def _triangular_solve(lmat, rhs, m):
-    """Solve L L' z = rhs."""
-    z = np.empty(m)
+def _triangular_solve(lmat, rhs, m, z):
+    """z[:m] = the solution of L L' z = rhs[:m] (L = ``lmat[:m, :m]``, lower)."""
     for p in range(m):
         acc = rhs[p]
         for t in range(p):
@@ -189,99 +189,134 @@ def _triangular_solve(lmat, rhs, m):
         for t in range(p + 1, m):
             acc -= lmat[t, p] * z[t]
         z[p] = acc / lmat[p, p]
-    return z
 
 
 @numba.njit(**_JIT)
-def _cholesky_solve(h, b, idx, m):
-    """Solve h[idx, idx] z = b[idx] (first m entries of idx) by Cholesky with a
-    tiny relative ridge (the Gram matrices of neighbouring poses are nearly
-    singular) and steps of iterative refinement against the unridged matrix,
-    which remove the ridge's bias (several when an offset common to every
-    pose, such as intensities far from 0, makes the ridge large against the
-    small eigenvalues); returns z (m,)."""
-    # the system's matrix and right-hand side, contiguous (the same numbers)
-    hs = np.empty((m, m))
-    bs = np.empty(m)
-    for p in range(m):
-        bs[p] = b[idx[p]]
-        for q in range(m):
-            hs[p, q] = h[idx[p], idx[q]]
-    lmat = np.zeros((m, m))
-    scale = 0.0
-    for p in range(m):
-        scale = max(scale, hs[p, p])
-    ridge = 1e-10 * scale + 1e-30
-    for p in range(m):
-        for q in range(p + 1):
-            acc = hs[p, q]
-            for t in range(q):
-                acc -= lmat[p, t] * lmat[q, t]
-            if p == q:
-                acc += ridge
-                lmat[p, p] = math.sqrt(acc) if acc > 0.0 else math.sqrt(ridge)
-            else:
-                lmat[p, q] = acc / lmat[q, q]
-    rhs = np.empty(m)
-    for p in range(m):
-        rhs[p] = bs[p]
-    z = _triangular_solve(lmat, rhs, m)
+def _factor_add(h, lmat, order, nf, p, ridge):
+    """Pose ``p`` enters the free set: the Cholesky factor ``lmat[:nf, :nf]``
+    of ``h[order, order] + ridge I`` (``order[:nf]``) gains a last row, the
+    one a full factorisation in this order computes.  Returns nf + 1."""
+    for t in range(nf):
+        acc = h[p, order[t]]
+        for s in range(t):
+            acc -= lmat[nf, s] * lmat[t, s]
+        lmat[nf, t] = acc / lmat[t, t]
+    acc = h[p, p]
+    for t in range(nf):
+        acc -= lmat[nf, t] * lmat[nf, t]
+    acc += ridge
+    lmat[nf, nf] = math.sqrt(acc) if acc > 0.0 else math.sqrt(ridge)
+    order[nf] = p
+    return nf + 1
+
+
+@numba.njit(**_JIT)
+def _factor_remove(lmat, order, where, nf, q):
+    """The pose at position ``q`` of the factor leaves the free set.  Without
+    its row, ``L`` still factors the smaller matrix (``L L'`` is made of the
+    rows' products) but has one entry above the diagonal in each row below
+    ``q``; Givens rotations of neighbouring columns, which leave ``L L'``
+    unchanged, zero them.  ``where`` (pose -> position) follows.  Returns
+    nf - 1."""
+    where[order[q]] = -1
+    for i in range(q, nf - 1):
+        for t in range(i + 2):
+            lmat[i, t] = lmat[i + 1, t]
+        order[i] = order[i + 1]
+        where[order[i]] = i
+    for i in range(q, nf - 1):
+        a, c = lmat[i, i], lmat[i, i + 1]
+        if c != 0.0:
+            r = math.hypot(a, c)
+            cos, sin = a / r, c / r
+            for k in range(i, nf - 1):
+                li, lj = lmat[k, i], lmat[k, i + 1]
+                lmat[k, i] = cos * li + sin * lj
+                lmat[k, i + 1] = cos * lj - sin * li
+        lmat[i, i + 1] = 0.0
+    return nf - 1
+
+
+@numba.njit(**_JIT)
+def _factor_solve(h, b, lmat, order, nf, z, rhs, dz):
+    """z[:nf] = the solution of ``h[order, order] z = b[order]`` (first
+    ``nf`` of ``order``) from the ridged factor (the Gram matrices of
+    neighbouring poses are nearly singular), with steps of iterative
+    refinement against the unridged matrix, which remove the ridge's bias
+    (several when an offset common to every pose, such as intensities far
+    from 0, makes the ridge large against the small eigenvalues).  The steps
+    stop once a correction is below rounding, or small and no longer shrinking
+    (what is left is the rounding of the residual: further steps only move
+    ``z`` within it)."""
+    for p in range(nf):
+        rhs[p] = b[order[p]]
+    _triangular_solve(lmat, rhs, nf, z)
+    before = np.inf
     for _ in range(REFINE_STEPS):
-        for p in range(m):
-            acc = bs[p]
-            for q in range(m):
-                acc -= hs[p, q] * z[q]
+        for p in range(nf):
+            hp = order[p]
+            acc = b[hp]
+            for q in range(nf):
+                acc -= h[hp, order[q]] * z[q]
             rhs[p] = acc
-        dz = _triangular_solve(lmat, rhs, m)
+        _triangular_solve(lmat, rhs, nf, dz)
         change, size = 0.0, 0.0
-        for p in range(m):
+        for p in range(nf):
             z[p] += dz[p]
             change = max(change, abs(dz[p]))
             size = max(size, abs(z[p]))
-        if change <= 1e-13 * size:
+        if change <= 1e-13 * size or (change <= 1e-9 * size and change > 0.5 * before):
             break
-    return z
+        before = change
 
 
 @numba.njit(**_JIT)
 def _nnqp(h, b, x, tol):
     """Lawson-Hanson active set for min x'Hx - 2b'x, x >= 0; x (feasible) is
-    updated in place."""
+    updated in place.  The Cholesky factor of the free set's system is
+    updated as poses enter (a row appended) and leave (a row removed,
+    :func:`_factor_remove`) instead of computed afresh; its ridge is
+    relative to the largest diagonal entry of ``h``."""
     m = b.shape[0]
     free = np.zeros(m, dtype=np.bool_)
+    lmat = np.empty((m, m))
+    order = np.empty(m, dtype=np.int64)
+    where = np.full(m, -1, dtype=np.int64)  # pose -> position in order
+    z, rhs, dz = np.empty(m), np.empty(m), np.empty(m)
+    scale = 0.0
     for p in range(m):
-        free[p] = x[p] > 0.0
-    idx = np.empty(m, dtype=np.int64)
+        scale = max(scale, h[p, p])
+    ridge = 1e-10 * scale + 1e-30
+    nf = 0
+    for p in range(m):
+        if x[p] > 0.0:
+            free[p] = True
+            where[p] = nf
+            nf = _factor_add(h, lmat, order, nf, p, ridge)
     for _outer in range(3 * m + 10):
         for _inner in range(3 * m + 10):
-            nf = 0
-            for p in range(m):
-                if free[p]:
-                    idx[nf] = p
-                    nf += 1
             if nf == 0:
                 break
-            z = _cholesky_solve(h, b, idx, nf)
+            _factor_solve(h, b, lmat, order, nf, z, rhs, dz)
             alpha = 1.0
             blocked = -1
-            for q in range(nf):
-                if z[q] <= 0.0:
-                    p = idx[q]
-                    step = x[p] / (x[p] - z[q])
+            for p in range(m):  # in pose order: ties go to the lower pose
+                if free[p] and z[where[p]] <= 0.0:
+                    step = x[p] / (x[p] - z[where[p]])
                     if step < alpha:
                         alpha = step
                         blocked = p
-            for q in range(nf):
-                p = idx[q]
-                x[p] += alpha * (z[q] - x[p])
+            for p in range(m):
+                if free[p]:
+                    x[p] += alpha * (z[where[p]] - x[p])
             if blocked < 0:
                 break
             x[blocked] = 0.0
-            for q in range(nf):
-                p = idx[q]
-                if x[p] <= 0.0:
+            for p in range(m):
+                if free[p] and x[p] <= 0.0:
                     x[p] = 0.0
                     free[p] = False
+                    nf = _factor_remove(lmat, order, where, nf, where[p])
         best, best_p = -tol, -1
         for p in range(m):
             if not free[p]:
@@ -293,6 +328,8 @@ def _nnqp(h, b, x, tol):
         if best_p < 0:
             return
         free[best_p] = True
+        where[best_p] = nf
+        nf = _factor_add(h, lmat, order, nf, best_p, ridge)
 
 
 @numba.njit(**_SUMS)

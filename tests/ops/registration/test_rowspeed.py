@@ -210,3 +210,43 @@ def test_rows_of_the_propagation_as_solved_before(rows):
         np.testing.assert_allclose(w, w0, atol=1e-6 * w0.sum())
         np.testing.assert_array_equal(out.valid, valid)
         np.testing.assert_allclose(out.registered[valid], a.T.astype(np.float64)[valid] @ w0, atol=1e-5)
+
+
+# ------------------------------------------------ the Lawson-Hanson factor updates
+
+
+def test_factor_updates_equal_a_fresh_factorisation():
+    """After poses enter (a row appended) and leave (a row removed, Givens
+    rotations) in a random order, the factor still factors the free set's
+    ridged Gram matrix in its order, and solves its system as a fresh
+    Cholesky factorisation does."""
+    from rsmb.ops.registration._rowsolve import _factor_add, _factor_remove, _factor_solve
+
+    rng = np.random.default_rng(7)
+    m = 24
+    cols = rng.normal(0.5, 0.2, (m, 200)) + 0.3 * rng.normal(0.0, 1.0, (1, 200))  # correlated columns
+    h = cols @ cols.T
+    b = cols @ rng.normal(0.0, 1.0, 200)
+    ridge = 1e-10 * h.diagonal().max()
+    lmat, order, where = np.empty((m, m)), np.empty(m, np.int64), np.full(m, -1, np.int64)
+    free, nf, removals = np.zeros(m, bool), 0, 0
+    for step in range(300):
+        p = int(rng.integers(m))
+        if free[p]:
+            nf = _factor_remove(lmat, order, where, nf, where[p])
+            removals += 1
+        else:
+            where[p] = nf
+            nf = _factor_add(h, lmat, order, nf, p, ridge)
+        free[p] = not free[p]
+        sel = order[:nf]
+        assert sorted(sel) == list(np.nonzero(free)[0])
+        np.testing.assert_array_equal(where[sel], np.arange(nf))
+        low = lmat[:nf, :nf]
+        np.testing.assert_allclose(np.tril(low) @ np.tril(low).T, h[np.ix_(sel, sel)] + ridge * np.eye(nf),
+                                   rtol=0, atol=1e-10 * h.diagonal().max())
+        if nf:
+            z, rhs, dz = np.empty(m), np.empty(m), np.empty(m)
+            _factor_solve(h, b, lmat, order, nf, z, rhs, dz)
+            np.testing.assert_allclose(z[:nf], np.linalg.solve(h[np.ix_(sel, sel)], b[sel]), rtol=1e-6)
+    assert removals > 100
