@@ -30,7 +30,7 @@ _SUMS = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})
 #: numba caches these kernels with the row solver compiled into them, keyed on
 #: this file alone: a change of :mod:`ops.registration._rowsolve` raises this
 #: number, or a checkout that ran the old code keeps running it here.
-ROWSOLVE_REVISION = 4
+ROWSOLVE_REVISION = 5
 
 #: A row whose centroid moves the window's farthest pixel more than this (px)
 #: away from where the path before it leads (its last pose plus its velocity)

@@ -425,11 +425,11 @@ def _dot_lin(ap, lin):
 
 
 @numba.njit(**_SUMS)
-def _dot_weighted(ap, aq, weight):
-    acc = 0.0
+def _weighted(ap, weight, out):
+    """out (N,) float64 = weight * ap: a product of pose columns is then
+    one multiply-add per pixel (:func:`_dot_lin`)."""
     for j in range(ap.shape[0]):
-        acc += weight[j] * ap[j] * aq[j]
-    return acc
+        out[j] = weight[j] * ap[j]
 
 
 @numba.njit(**_SUMS)
@@ -438,13 +438,15 @@ def _gram_model(cache, cols, idx, m, weight, lin, lam, h, b):
     ``b`` (m,) = their products with ``lin`` less ``lam / 2``: from the
     cache where it holds them, computed (and kept) where not."""
     pool = cache.poses.shape[0]
+    wp = np.empty(weight.shape[0])  # weight * column p, made once for all of p's missing products
     if m > pool:  # a working set larger than the pool: computed afresh
         _gram_clear(cache)
         for p in range(m):
             ap = _column(cols, idx[p])
             b[p] = _dot_lin(ap, lin) - 0.5 * lam
+            _weighted(ap, weight, wp)
             for q in range(p + 1):
-                h[p, q] = _dot_weighted(ap, _column(cols, idx[q]), weight)
+                h[p, q] = _dot_lin(_column(cols, idx[q]), wp)
                 h[q, p] = h[p, q]
         return
     missing = 0
@@ -466,10 +468,14 @@ def _gram_model(cache, cols, idx, m, weight, lin, lam, h, b):
             cache.b[sp] = _dot_lin(ap, lin) - 0.5 * lam
             cache.b_done[sp] = True
         b[p] = cache.b[sp]
+        made = False
         for q in range(p + 1):
             sq = cache.slot_of[idx[q]]
             if not cache.h_done[sp, sq]:
-                value = _dot_weighted(ap, _column(cols, idx[q]), weight)
+                if not made:
+                    _weighted(ap, weight, wp)
+                    made = True
+                value = _dot_lin(_column(cols, idx[q]), wp)
                 cache.h[sp, sq] = value
                 cache.h[sq, sp] = value
                 cache.h_done[sp, sq] = True
