@@ -152,9 +152,14 @@ class _Propagation:
         while pos < len(rows):
             center_prev, w_prev = self.weights[prev]
             # the stack grows as pre-warped images are made: read it afresh
-            stack = problem.stack if problem.stack is not None else np.empty((1, 1, 1), np.float32)
+            if problem.stack is not None:
+                stack, warped, pose6, row0 = problem.stack, problem.warped, problem.slot_pose6, problem.slot_row0
+            else:
+                stack, warped = np.empty((1, 1, 1), np.float32), np.zeros((1, 2), np.int64)
+                pose6, row0 = np.zeros((1, 1, 6)), np.zeros(1, np.int64)
             prewarp = _Prewarp(stack, arr["table"], arr["other_lo"], arr["band_lo"], problem.BAND, problem.pad,
-                               problem.margin)
+                               problem.margin, warped, problem.ref, pose6, row0, float(problem.dx - problem.margin),
+                               problem.focal, float(problem.cx), float(problem.cy))
             reached, other_index, band, status = _propagate_rows(
                 _Context(prewarp, lattice, settings, capture, outputs), rows[pos:],
                 _Neighbour(c_prev, center_prev, w_prev), self._a, trust, anchor)
@@ -203,15 +208,16 @@ class _Propagation:
         return prev
 
     def _make_prewarp(self, other_index, band):
-        """Pre-warp the image of ``other_index`` (lattice index of the other
-        axis) for ``band`` and enter its slot in the table."""
+        """A slot for the pre-warped image of ``other_index`` (lattice index of
+        the other axis) and ``band``, entered in the table; the compiled loop
+        warps its rows as rows read them."""
         problem, arr = self.solver.problem, self._arrays
         index = np.zeros(len(self.step), np.int64)
         if arr["other"] >= 0:
             index[arr["other"]] = other_index
         key = (other_index,) if arr["other"] >= 0 else ()
         generation = problem.generation
-        slot = problem._slot(key, index, band)
+        slot = problem._slot(key, index, band, lazy=True)  # the compiled loop warps the rows it reads
         if problem.generation != generation:  # slots of far bands were reused
             self._refill_table()
         arr["table"][other_index - arr["other_lo"], band - arr["band_lo"]] = slot

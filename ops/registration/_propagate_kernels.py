@@ -21,16 +21,20 @@ import numpy as np
 
 import math
 
+from .._warp import _warp_into
 from ._rowsolve import SOLVED, _column, _Columns, _solve
 
 __all__ = []
 
+_JIT = dict(nogil=True, cache=True)
 _SUMS = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})
 
-#: numba caches these kernels with the row solver compiled into them, keyed on
-#: this file alone: a change of :mod:`ops.registration._rowsolve` raises this
-#: number, or a checkout that ran the old code keeps running it here.
-ROWSOLVE_REVISION = 5
+#: numba caches these kernels with the row solver and the row warp compiled
+#: into them, keyed on this file alone: a change of
+#: :mod:`ops.registration._rowsolve` or of :func:`ops._warp._warp_into` (and
+#: what it calls) raises this number, or a checkout that ran the old code
+#: keeps running it here.
+ROWSOLVE_REVISION = 6
 
 #: A row whose centroid moves the window's farthest pixel more than this (px)
 #: away from where the path before it leads (its last pose plus its velocity)
@@ -69,7 +73,12 @@ class _Prewarp(NamedTuple):
     """The pre-warped images (stack (S, rows, cols) float32) and the table of
     their slots by (other-axis lattice index - other_lo, band - band_lo), -1
     where not made yet; bands of ``band`` rows with ``pad`` rows above and
-    below, columns offset by ``margin``."""
+    below, columns offset by ``margin``.  Each slot holds the rows ``warped``
+    (S, 2) [lo, hi) so far; the others are warped when a row first reads them
+    (:func:`_warp_rows`): the reference window ``ref`` (Hr, Wr) float32 by the
+    slot's pose of each row ``pose6`` (S, rows, 6), its first row at
+    ``row0`` (S,) and its first column at ``col0`` of the reference window,
+    with the camera's ``focal``, ``cx``, ``cy`` in that window's frame."""
 
     stack: np.ndarray
     table: np.ndarray
@@ -78,6 +87,14 @@ class _Prewarp(NamedTuple):
     band: int
     pad: int
     margin: int
+    warped: np.ndarray
+    ref: np.ndarray
+    pose6: np.ndarray
+    row0: np.ndarray
+    col0: float
+    focal: float
+    cx: float
+    cy: float
 
 
 class _Lattice(NamedTuple):
@@ -303,6 +320,19 @@ def _row_step(source, row, settings, w, a):
     return obj, count, status == SOLVED
 
 
+@numba.njit(**_JIT)
+def _warp_rows(prewarp, slot, r):
+    """Make row ``r`` of pre-warped image ``slot`` readable: warp the rows
+    between it and those warped so far (they stay one range)."""
+    lo, hi = prewarp.warped[slot, 0], prewarp.warped[slot, 1]
+    if lo >= hi:
+        lo, hi = r, r
+    a, b = (r, lo) if r < lo else (hi, r + 1)
+    _warp_into(prewarp.ref, prewarp.pose6[slot, a:b], prewarp.focal, prewarp.cx, prewarp.cy,
+               float(prewarp.row0[slot] + a), prewarp.col0, prewarp.stack[slot, a:b])
+    prewarp.warped[slot, 0], prewarp.warped[slot, 1] = min(lo, a), max(hi, b)
+
+
 @numba.njit(**_SUMS)
 def _solve_at(ctx, i, neighbour, work):
     """Solve row ``i`` on the grid ``N(neighbour.centroid, b, s)``,
@@ -336,6 +366,11 @@ def _solve_at(ctx, i, neighbour, work):
         if table[o, b] < 0:
             return 1, o + other_lo, bnd, 0.0, 0
         slot[k] = table[o, b]
+    warped, rows = prewarp.warped, prewarp.stack.shape[1]
+    for k in range(k_count):  # the rows this row reads, warped if not yet
+        r = y - sy[k]
+        if 0 <= r < rows and not (warped[slot[k], 0] <= r < warped[slot[k], 1]):
+            _warp_rows(prewarp, slot[k], r)
     # warm start: new[o] = old[o + (center - prev_center)]
     for k in range(k_count):
         w[k] = 0.0

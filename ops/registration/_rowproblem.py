@@ -50,6 +50,9 @@ class _RowProblem:
         self.slots = {}
         self.slot_cache = {}
         self.stack = None
+        # per slot: the full pose (rows, 6) of each of its rows, the first
+        # row's place in the reference window, the rows [lo, hi) warped so far
+        self.slot_pose6, self.slot_row0, self.warped = None, None, None
         self.free = []
         self.generation = 0  # counts evictions: cached slot numbers are stale when it changes
         # columns: the distorted window plus the largest shift; rows: one band
@@ -65,7 +68,13 @@ class _RowProblem:
         band = y // self.BAND
         return band, row + self.margin - (band * self.BAND - self.pad)
 
-    def _slot(self, key, index, band):
+    def _slot(self, key, index, band, lazy=False):
+        """The slot of the pre-warped image of ``key`` (the other axes' lattice
+        values, ``index`` a lattice point holding them) for ``band``, warped
+        over all its rows; ``lazy``: none warped yet (the compiled propagation
+        warps the rows it reads, :func:`ops.registration._propagate_kernels._warp_rows`).
+        Each row is warped alone, so an image warped in parts equals one
+        warped at once."""
         slot = self.slots.get((key, band))
         if slot is None:
             slot = self._free_slot(band)
@@ -75,10 +84,25 @@ class _RowProblem:
             pose6 = full_poses(pose, self.axes)[None, :]
             if self.slow is not None:  # each pre-translation row with its own slow rotation
                 pose6 = pose6 + self.slow.prewarp_pose6(first_row - self.dy + np.arange(self.stack_shape[0]))
-            _warp_into(self.ref, pose6, self.focal, self.cx, self.cy, float(first_row),
-                       float(self.dx - self.margin), self.stack[slot])
+            self.slot_pose6[slot] = pose6
+            self.slot_row0[slot] = first_row
+            self.warped[slot] = 0
             self.slots[(key, band)] = slot
+        if not lazy:
+            self._warp_all(slot)
         return slot
+
+    def _warp_all(self, slot):
+        """Warp the rows of ``slot`` not warped yet (``warped[slot]`` = [lo, hi))."""
+        lo, hi = self.warped[slot]
+        rows = self.stack_shape[0]
+        if hi <= lo:
+            lo = hi = 0
+        for a, b in ((0, lo), (hi, rows)):
+            if b > a:
+                _warp_into(self.ref, self.slot_pose6[slot, a:b], self.focal, self.cx, self.cy,
+                           float(self.slot_row0[slot] + a), float(self.dx - self.margin), self.stack[slot, a:b])
+        self.warped[slot] = (0, rows)
 
     def _free_slot(self, band):
         """Room for one more pre-warped image of ``band``: an unused slot, else the
@@ -97,10 +121,14 @@ class _RowProblem:
                     break
             else:
                 used = 0 if self.stack is None else self.stack.shape[0]
-                grow = np.empty((used + max(8, used // 4),) + self.stack_shape, dtype=np.float32)
+                size = used + max(8, used // 4)
+                grow = np.empty((size,) + self.stack_shape, dtype=np.float32)
+                pose6 = np.zeros((size, self.stack_shape[0], 6))
+                row0, warped = np.zeros(size, np.int64), np.zeros((size, 2), np.int64)
                 if used:
                     grow[:used] = self.stack
-                self.stack = grow
+                    pose6[:used], row0[:used], warped[:used] = self.slot_pose6, self.slot_row0, self.warped
+                self.stack, self.slot_pose6, self.slot_row0, self.warped = grow, pose6, row0, warped
                 self.free = list(range(grow.shape[0] - 1, used - 1, -1))
         return self.free.pop()
 

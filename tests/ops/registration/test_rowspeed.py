@@ -250,3 +250,47 @@ def test_factor_updates_equal_a_fresh_factorisation():
             _factor_solve(h, b, lmat, order, nf, z, rhs, dz)
             np.testing.assert_allclose(z[:nf], np.linalg.solve(h[np.ix_(sel, sel)], b[sel]), rtol=1e-6)
     assert removals > 100
+
+
+# ------------------------------------------------ pre-warped rows made as rows read them
+
+
+@pytest.mark.parametrize("slow", [False, True])
+def test_rows_warped_as_read_equal_the_whole_image(slow):
+    """A pre-warped image whose rows the compiled loop warps one by one as
+    rows read them, in any order (:func:`_warp_rows`), holds the image warped
+    at once, bit for bit, also with a slow path giving each row its own pose;
+    the rows warped stay one range, and the Python side completes it."""
+    from rsmb.ops.registration._propagate_kernels import _Prewarp, _warp_rows
+
+    pair = ops.synthesize_pair(SHAPE, motion="inplane", changes=2, noise=0.002, seed=5)
+    params = ops.RegistrationParams().resolved(pair.camera)
+    path = None
+    if slow:
+        rng = np.random.default_rng(6)
+        path = ops.SlowPath(np.cumsum(rng.normal(0.0, 0.02, (SHAPE[0], 2)), 0), np.linspace(-1.0, 1.0, SHAPE[0]))
+
+    def problem():
+        return _RowProblem(pair.reference, pair.distorted, np.ones(SHAPE, bool), pair.camera, (0, 0), (0, 0),
+                           params.axes, params.step, 40, 13, path)
+
+    index = np.array([0, 0, 3])
+    whole, lazy = problem(), problem()
+    whole_slot = whole._slot((3,), index, 1)
+    full = whole.stack[whole_slot]
+    slot = lazy._slot((3,), index, 1, lazy=True)
+    assert tuple(lazy.warped[slot]) == (0, 0)
+    prewarp = _Prewarp(lazy.stack, np.zeros((1, 1), np.int64), 0, 0, lazy.BAND, lazy.pad, lazy.margin, lazy.warped,
+                       lazy.ref, lazy.slot_pose6, lazy.slot_row0, float(lazy.dx - lazy.margin), lazy.focal,
+                       float(lazy.cx), float(lazy.cy))
+    rows = lazy.stack_shape[0]
+    for r in (40, 41, 39, 44, 30, 60):
+        _warp_rows(prewarp, slot, r)
+        lo, hi = lazy.warped[slot]
+        assert lo <= r < hi
+        np.testing.assert_array_equal(lazy.stack[slot, lo:hi], full[lo:hi])
+    assert tuple(lazy.warped[slot]) == (30, 61)
+    assert lazy._slot((3,), index, 1) == slot  # a full request completes it
+    assert tuple(lazy.warped[slot]) == (0, rows)
+    np.testing.assert_array_equal(lazy.stack[slot], full)
+    assert np.isfinite(full).any()
