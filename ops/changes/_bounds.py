@@ -41,7 +41,7 @@ import numba
 import numpy as np
 
 from .._oracle import optimal_chi
-from ..depth._depthmap import _RowPoses, _geometry, _pose_maps
+from ..depth._depthmap import _RowPoses, _geometry, _point
 
 __all__ = ["ModelBounds", "model_bounds", "bounded_score"]
 
@@ -94,24 +94,24 @@ def model_bounds(registration, reference, high, low, mask, *, camera, reference_
     """
     rows = _RowPoses.of(registration, mask.shape[0])
     focal, cx, cy, dy, dx = _geometry(camera, reference_origin_yx, distorted_origin_yx)
-    ref = np.ascontiguousarray(reference, np.float32)
     state = np.where(np.asarray(high, bool), 1, np.where(np.asarray(low, bool), 2, 0)).astype(np.int8)
     shape = np.shape(mask)
     model = np.full(shape, np.nan, np.float32)
     high_share, low_share = np.full(shape, np.nan, np.float32), np.full(shape, np.nan, np.float32)
     if len(rows.poses6):
-        _bounds(ref, state, _pose_maps(rows.poses6, focal, cx, cy), rows.poses6, rows.weights, rows.offsets,
-                rows.gain, cx, cy, dy, dx, np.asarray(mask, np.uint8), model, high_share, low_share)
+        _bounds(rows.scene(reference, (focal, cx, cy, dy, dx)), state, np.asarray(mask, np.uint8), model, high_share,
+                low_share)
     return ModelBounds(model, high_share, low_share)
 
 
 @numba.njit(nogil=True, cache=True)
-def _bounds(ref, state, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, mask, model, high_share, low_share):
-    """:func:`model_bounds` in one pass: each pixel's weighted poses sample
-    the reference bilinearly (as :func:`ops.model_values` does) and the
-    clipped ``state`` (1 saturated, 2 at 0) with the same weights; NaN where
-    a pose leaves valid reference data."""
+def _bounds(scene, state, mask, model, high_share, low_share):
+    """:func:`model_bounds` in one pass: each pixel's weighted poses (the
+    :class:`_Scene` at the plane) sample the reference bilinearly (as
+    :func:`ops.model_values` does) and the clipped ``state`` (1 saturated, 2
+    at 0) with the same weights; NaN where a pose leaves valid reference data."""
     height, width = model.shape
+    ref, poses6, weights, offsets, gain = scene.ref, scene.poses6, scene.weights, scene.offsets, scene.gain
     hr, wr = ref.shape
     per_column = gain.shape[0] == width
     for i in range(height):
@@ -123,13 +123,8 @@ def _bounds(ref, state, maps, poses6, weights, offsets, gain, cx, cy, dy, dx, ma
                 continue
             acc, total, up, down, ok = 0.0, 0.0, 0.0, 0.0, True
             for k in range(s0, s1):
-                m = maps[k]
-                sc = 1.0 + poses6[k, 2]
-                ux = (j + dx - cx - poses6[k, 0]) / sc
-                uy = (i + dy - cy - poses6[k, 1]) / sc
-                h2 = m[6] * ux + m[7] * uy + m[8]
-                u = (m[0] * ux + m[1] * uy + m[2]) / h2 + cx
-                v = (m[3] * ux + m[4] * uy + m[5]) / h2 + cy
+                u, v = _point(scene.maps[k], poses6[k, 0], poses6[k, 1], 1.0 + poses6[k, 2], j + scene.dx,
+                              i + scene.dy, scene.cx, scene.cy)
                 if not (u >= 0.0 and v >= 0.0 and u <= wr - 1 and v <= hr - 1):
                     ok = False
                     break

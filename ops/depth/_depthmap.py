@@ -463,7 +463,16 @@ def _sample(ref, m, tx, ty, sc, x, y, cx, cy):
     """The reference at the point a pose (rotation map ``m``, translations
     ``tx``, ``ty`` px, scale ``sc``) carries capture pixel (x, y) to, in the
     reference window's frame: bilinear; NaN outside it or on no-data."""
+    u, v = _point(m, tx, ty, sc, x, y, cx, cy)
+    return _bilinear(ref, u, v)
+
+
+@numba.njit(nogil=True, cache=True)
+def _point(m, tx, ty, sc, x, y, cx, cy):
+    """The point (u, v) (column, row) of the reference window that a pose
+    (rotation map ``m``, translations ``tx``, ``ty`` px, scale ``sc``)
+    carries capture pixel (x, y) to."""
     ux = (x - cx - tx) / sc
     uy = (y - cy - ty) / sc
     h2 = m[6] * ux + m[7] * uy + m[8]
-    return _bilinear(ref, (m[0] * ux + m[1] * uy + m[2]) / h2 + cx, (m[3] * ux + m[4] * uy + m[5]) / h2 + cy)
+    return (m[0] * ux + m[1] * uy + m[2]) / h2 + cx, (m[3] * ux + m[4] * uy + m[5]) / h2 + cy
