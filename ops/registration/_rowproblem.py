@@ -89,20 +89,23 @@ class _RowProblem:
             self.warped[slot] = 0
             self.slots[(key, band)] = slot
         if not lazy:
-            self._warp_all(slot)
+            self._warp_rows(slot, 0, self.stack_shape[0])
         return slot
 
-    def _warp_all(self, slot):
-        """Warp the rows of ``slot`` not warped yet (``warped[slot]`` = [lo, hi))."""
-        lo, hi = self.warped[slot]
-        rows = self.stack_shape[0]
+    def _warp_rows(self, slot, lo, hi):
+        """Warp the rows [lo, hi) of ``slot`` not warped yet; the rows warped
+        (``warped[slot]``) stay one range."""
         if hi <= lo:
-            lo = hi = 0
-        for a, b in ((0, lo), (hi, rows)):
+            return
+        have_lo, have_hi = self.warped[slot]
+        if have_hi <= have_lo:
+            have_lo = have_hi = lo
+        lo, hi = min(lo, have_lo), max(hi, have_hi)
+        for a, b in ((lo, have_lo), (have_hi, hi)):
             if b > a:
                 _warp_into(self.ref, self.slot_pose6[slot, a:b], self.focal, self.cx, self.cy,
                            float(self.slot_row0[slot] + a), float(self.dx - self.margin), self.stack[slot, a:b])
-        self.warped[slot] = (0, rows)
+        self.warped[slot] = (lo, hi)
 
     def _free_slot(self, band):
         """Room for one more pre-warped image of ``band``: an unused slot, else the
@@ -132,20 +135,27 @@ class _RowProblem:
                 self.free = list(range(grow.shape[0] - 1, used - 1, -1))
         return self.free.pop()
 
-    def _slots_of(self, index, band):
-        """Pre-warped image of every pose of a grid (by its non-translation part)."""
+    def _slots_of(self, index, band, rows=None):
+        """Pre-warped image of every pose of a grid (by its non-translation
+        part), warped over the rows [lo, hi) ``rows`` at least (default all)."""
+        lo, hi = (0, self.stack_shape[0]) if rows is None else rows
         if not self.other:
-            return np.full(len(index), self._slot((), index[0], band), dtype=np.int64)
+            slot = self._slot((), index[0], band, lazy=True)
+            self._warp_rows(slot, lo, hi)
+            return np.full(len(index), slot, dtype=np.int64)
         # grids are a centre plus fixed offsets: the slots depend on the centre only
         key = (len(index), band) + tuple(index[len(index) // 2, self.other])
         slots = self.slot_cache.get(key)
         if slots is None:
             keys, inverse = np.unique(index[:, self.other], axis=0, return_inverse=True)
             first = np.unique(inverse.ravel(), return_index=True)[1]
-            slots = np.array([self._slot(tuple(keys[u]), index[f], band) for u, f in enumerate(first)],
-                             dtype=np.int64)[inverse.ravel()]
+            distinct = np.array([self._slot(tuple(keys[u]), index[f], band, lazy=True) for u, f in enumerate(first)],
+                                dtype=np.int64)
+            slots = (distinct[inverse.ravel()], distinct)
             self.slot_cache[key] = slots
-        return slots
+        for slot in slots[1]:
+            self._warp_rows(slot, lo, hi)
+        return slots[0]
 
     def with_slow(self, poses6, row):
         """Full poses (K, 6) of capture row ``row`` with the slow rotations added."""
@@ -175,11 +185,17 @@ class _RowProblem:
         return (shift[:, self.ty] if self.ty is not None else zeros,
                 shift[:, self.tx] if self.tx is not None else zeros)
 
-    def gather_args(self, row, index, poses):
-        """(slots, ty shifts, tx shifts, row inside the band) for one row."""
+    def gather_args(self, row, index, poses, only_row=False):
+        """(slots, ty shifts, tx shifts, row inside the band) for one row; the
+        pre-warped images are warped over every row of the band, or
+        (``only_row``) over the rows this row reads at least."""
         shift_y, shift_x = self.shifts(poses)
         band, y = self.band_of(row, int(shift_y[len(shift_y) // 2]))
-        return self._slots_of(index, band), shift_y, shift_x, y
+        rows = None
+        if only_row:
+            rows = (int(min(max(y - shift_y.max(), 0), self.stack_shape[0])),
+                    int(min(max(y - shift_y.min() + 1, 0), self.stack_shape[0])))
+        return self._slots_of(index, band, rows), shift_y, shift_x, y
 
     def build(self, rows, index, poses):
         """A (K, len(rows) * W) float32 and g (N,) with invalid pixels zeroed,
@@ -195,7 +211,7 @@ class _RowProblem:
             # write straight into the block's columns of this row
             buf = a[:, q * n:(q + 1) * n] if len(rows) > 1 else a
             if self.gather:
-                slot, shift_y, shift_x, y = self.gather_args(i, index, poses)
+                slot, shift_y, shift_x, y = self.gather_args(i, index, poses, only_row=True)
                 v = _gather_row(self.stack, slot, shift_y, shift_x, y, self.margin, buf)
             else:
                 v = _build_row(self.ref, float(i + self.dy), float(self.dx), self.with_slow(poses6, i), self.focal,

@@ -294,3 +294,29 @@ def test_rows_warped_as_read_equal_the_whole_image(slow):
     assert tuple(lazy.warped[slot]) == (0, rows)
     np.testing.assert_array_equal(lazy.stack[slot], full)
     assert np.isfinite(full).any()
+
+
+def test_block_columns_from_rows_warped_as_needed():
+    """``build`` warps only the rows of each pre-warped image its rows read:
+    the same ``F_i`` as from whole images, with fewer rows warped."""
+    pair = ops.synthesize_pair(SHAPE, motion="inplane", changes=2, noise=0.002, seed=8)
+    params = ops.RegistrationParams().resolved(pair.camera)
+    space = params.space
+    axes = [ops.POSE_AXES.index(a) for a in params.axes]
+
+    def problem():
+        return _RowProblem(pair.reference, pair.distorted, np.ones(SHAPE, bool), pair.camera, (0, 0), (0, 0),
+                           params.axes, params.step, 40)
+
+    needed, whole = problem(), problem()
+    for rows in ([40, 41, 42], [47]):
+        index, poses = space.grid(pair.trajectory[rows[0], axes])
+        a, g, valid = needed.build(rows, index, poses)
+        slots = np.unique(whole.gather_args(rows[0], index, poses)[0])  # every row of these images
+        a0, g0, valid0 = whole.build(rows, index, poses)
+        np.testing.assert_array_equal(a, a0)
+        np.testing.assert_array_equal(valid, valid0)
+        np.testing.assert_array_equal(g, g0)
+        assert all(tuple(whole.warped[s]) == (0, whole.stack_shape[0]) for s in slots)
+    spans = needed.warped[:, 1] - needed.warped[:, 0]
+    assert 0 < spans.max() < needed.stack_shape[0]
