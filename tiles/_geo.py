@@ -263,19 +263,19 @@ def write_spatial_coords(group, geo, shape: tuple[int, int]) -> list[str]:
             array = group.create_array(name, shape=values.shape, dtype="float64", chunks=values.shape,
                                        dimension_names=(name,), fill_value=float("nan"), overwrite=True)
             array[:] = values
-            array.attrs.update(attrs)
+            array.update_attributes(attrs)
             written.append(name)
     if geo.crs is not None:
         ref = group.create_array("spatial_ref", shape=(), dtype="int64", dimension_names=(),
                                  fill_value=0, overwrite=True)
         ref[...] = 0
-        ref.attrs.update(jsonable(cf_grid_mapping(geo)))
+        ref.update_attributes(jsonable(cf_grid_mapping(geo)))
         written.append("spatial_ref")
-        for _, array in group.arrays():
+        arrays = [array for _, array in group.arrays()]  # each array's metadata read once
+        for array in arrays:
             if tuple(array.metadata.dimension_names or ()) == ("y", "x"):
-                array.attrs.update({"grid_mapping": "spatial_ref", "coordinates": "spatial_ref"})
-        sensor = [array for _, array in group.arrays()
-                  if tuple(array.metadata.dimension_names or ()) == ("row", "col")]
+                array.update_attributes({"grid_mapping": "spatial_ref", "coordinates": "spatial_ref"})
+        sensor = [array for array in arrays if tuple(array.metadata.dimension_names or ()) == ("row", "col")]
         if sensor:
             written.append(_mark_sensor_frame(group, sensor))
     return written
@@ -290,9 +290,9 @@ def _mark_sensor_frame(group, arrays) -> str:
     frame = group.create_array("sensor_frame", shape=(), dtype="int64", dimension_names=(), fill_value=0,
                                overwrite=True)
     frame[...] = 0
-    frame.attrs.update({"long_name": "sensor frame: the capture's pixels as the rolling shutter recorded them, "
+    frame.update_attributes({"long_name": "sensor frame: the capture's pixels as the rolling shutter recorded them, "
                                      "warped against the ground by the camera's motion; no map coordinates",
                         "comment": "the ground frame (dims y, x) has them: see spatial_ref"})
     for array in arrays:
-        array.attrs.update({"grid_mapping": "sensor_frame"})
+        array.update_attributes({"grid_mapping": "sensor_frame"})
     return "sensor_frame"

@@ -218,7 +218,7 @@ def update_attrs(path: str | os.PathLike, updates: dict[str, Any]) -> None:
     :func:`jsonable`) and consolidate its metadata again."""
     import zarr
 
-    zarr.open_group(store=str(path), mode="r+").attrs.update(jsonable(updates))
+    zarr.open_group(store=str(path), mode="r+").update_attributes(jsonable(updates))  # one metadata write
     _consolidate(Path(path))
 
 

@@ -88,8 +88,7 @@ def _ingest(runner, group, run, plan, timings):
         tiles.check_stats(capture_stats, names[1], pixels=plan.shape[0] * plan.shape[1])
         tiles.check_stats(reference_stats, names[0])
         scale = ops.intensity_scale(reference_stats, capture_stats, names=names)
-        group.attrs["intensity"] = tiles.jsonable(scale.as_dict())
-        group.attrs["ingest_complete"] = True
+        group.update_attributes({"intensity": tiles.jsonable(scale.as_dict()), "ingest_complete": True})
     timings["ingest_s"] = time.perf_counter() - t0
     return dataclasses.replace(run, intensity=scale)
 
@@ -251,19 +250,19 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff):
     """Stage 6: attributes, scratch arrays dropped, the store renamed into
     place, GeoTIFFs on request."""
     axes = plan.params.trajectory_axes
-    group.attrs.update(_attributes(plan, result, scheduler))
-    group.attrs["parallax"] = tiles.jsonable(
+    # one metadata write for all of them (``attrs.update`` writes once per key)
+    group.update_attributes({**_attributes(plan, result, scheduler), "parallax": tiles.jsonable(
         {"rule": "a candidate change is parallax when at its best relative depth (translations divided by it, "
                  f"rotations kept; {plan.config.changes.layers and 'swept over ' + str(list(ops.LayerParams().depths)) or 'not tested: --no-layers'}) "
                  f"at least {MIN_EXPLAINED:.0%} of its pixels fall below the change threshold "
                  f"and those plus the pixels of ground the layer hid in the reference make up at least "
                  f"{MIN_COVERED:.0%} of it; only its pixels explained at that depth, on the layer's edge or "
                  "disoccluded join parallax_mask, the rest stays a change candidate",
-         "components": _tasks.layer_components(group)})
+         "components": _tasks.layer_components(group)})})
     # only the ground-frame arrays (dims y, x) get map coordinates
     geo = ground_geo(plan.pairing.mode, plan.references[0].geo, plan.distorted.geo)
     tiles.write_spatial_coords(group, geo, plan.shape)
-    group["trajectory"].attrs.update({"pose_axes": list(axes), "units": [ops.AXIS_UNITS[a] for a in axes]})
+    group["trajectory"].update_attributes({"pose_axes": list(axes), "units": [ops.AXIS_UNITS[a] for a in axes]})
     for name in ("work", "ingest"):
         del group[name]
     write_previews(group, plan.pairing)  # what the report shows of the inputs, which may not stay where they are

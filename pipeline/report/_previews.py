@@ -72,7 +72,7 @@ def write_previews(group, pairing, *, side=PREVIEW_SIDE):
         array = group.create_array(name, shape=rgba.shape, dtype="uint8", chunks=rgba.shape,
                                    dimension_names=["preview_row", "preview_col", "rgba"], overwrite=True)
         array[:] = rgba
-        array.attrs.update({"factor": factor, "frame": where,
+        array.update_attributes({"factor": factor, "frame": where,
                             "description": "RGBA preview, block mean of factor x factor input pixels; "
                                            "alpha 0 where the input has no data"})
 
