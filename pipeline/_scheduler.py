@@ -7,7 +7,7 @@ cores: OpenCV and every BLAS library loaded (threadpoolctl) run one thread per
 task.
 
 Process-wide settings (:func:`configure_process`: OpenCV's and BLAS's thread
-counts, glibc's mmap threshold) are made only in processes that exist to run
+counts, glibc's malloc thresholds and arenas) are made only in processes that exist to run
 rsmb: the ``processes`` scheduler's worker processes, where each task makes
 them once, and the ``rsmb`` command itself.  A program that imports rsmb as a
 library keeps its settings: while :meth:`Runner.map` runs tasks in the calling
@@ -41,6 +41,10 @@ log = logging.getLogger("rsmb")
 
 
 _MMAP_THRESHOLD = 4 << 20
+#: glibc keeps up to this much free memory at the top of a heap instead of returning it (M_TRIM_THRESHOLD) ...
+_TRIM_THRESHOLD = 1 << 30
+#: ... and grows a heap by this much more than asked (M_TOP_PAD): address space, resident only once used
+_TOP_PAD = 64 << 20
 _process_ready = False
 _threads_lock = threading.Lock()
 _blas_lock = threading.Lock()  # one change of BLAS thread counts at a time (tasks of a worker process)
@@ -87,7 +91,13 @@ def configure_process():
     cores), and on glibc arrays of 4 MiB and more served by mmap: glibc
     otherwise raises its mmap threshold as large blocks are freed and keeps
     freed tile buffers in the heap, so the resident size grows with the number
-    of tiles.  Called by every task in a
+    of tiles.  Below that size, freed memory stays in the heaps for the next
+    arrays (:data:`_TRIM_THRESHOLD`, :data:`_TOP_PAD`) and there is at most
+    one heap (arena) per core: by default glibc gives memory back to the
+    kernel as soon as the top of a heap is free, and the next array of the
+    same size takes its pages again, each first touch a page fault (the
+    system time of a night of small captures, whose every capture allocates
+    and frees the buffers of a whole tile).  Called by every task in a
     worker process and meant for the ``rsmb`` command's entry point; never call
     it in a program that uses rsmb as a library (the malloc setting cannot be
     undone).  Idempotent.
@@ -102,7 +112,11 @@ def configure_process():
     _process_ready = True
     if sys.platform.startswith("linux"):
         try:
-            ctypes.CDLL("libc.so.6").mallopt(-3, _MMAP_THRESHOLD)  # -3: M_MMAP_THRESHOLD
+            libc = ctypes.CDLL("libc.so.6")
+            libc.mallopt(-3, _MMAP_THRESHOLD)  # -3: M_MMAP_THRESHOLD
+            libc.mallopt(-1, _TRIM_THRESHOLD)  # -1: M_TRIM_THRESHOLD
+            libc.mallopt(-2, _TOP_PAD)  # -2: M_TOP_PAD
+            libc.mallopt(-8, max(2, os.cpu_count() or 1))  # -8: M_ARENA_MAX
         except (OSError, AttributeError):  # not glibc
             pass
 
