@@ -93,10 +93,13 @@ def reduce_preview(rgba, factor):
         return rgba
     h, w = rgba.shape[:2]
     if h % factor == 0 and w % factor == 0 and (rgba[..., 3] == 255).all():  # whole blocks, all with data
-        # the block sums in integers, rows first (contiguous adds: several times faster than a mean over
-        # both axes), divided in float32: the same bytes as the float32 block mean, whose sums are exact
-        rows = rgba[..., :3].reshape(h // factor, factor, w, 3).sum(axis=1, dtype=np.uint32)
-        sums = rows.reshape(h // factor, w // factor, factor, 3).sum(axis=2, dtype=np.uint32)
+        # the block sums in integers, as whole-array adds of the factor ** 2 strided views (a sum over an
+        # axis of a few elements runs an inner loop per element), divided in float32: the same bytes as the
+        # float32 block mean, whose sums are exact
+        sums = np.zeros((h // factor, w // factor, 3), np.uint32)
+        for i in range(factor):
+            for j in range(factor):
+                sums += rgba[i::factor, j::factor, :3]
         rgb = (sums.astype(np.float32) / np.float32(factor * factor) + np.float32(0.5)).astype(np.uint8)
         return np.concatenate([rgb, np.full(rgb.shape[:2] + (1,), 255, np.uint8)], axis=-1)
     bands = np.where(rgba[..., 3] > 0, np.moveaxis(rgba[..., :3], -1, 0).astype(np.float32), np.float32(np.nan))

@@ -129,14 +129,28 @@ def _reduce_band(block, factor, how):
     pr, pc = -rows % factor, -w % factor
     if pr or pc:
         block = np.pad(block, ((0, pr), (0, pc)), constant_values=np.nan)
-    cells = block.reshape(block.shape[0] // factor, factor, block.shape[1] // factor, factor)
     if how == "max":
-        return np.fmax.reduce(np.fmax.reduce(cells, axis=3), axis=1)
+        return _block_fmax(block, factor)
+    cells = block.reshape(block.shape[0] // factor, factor, block.shape[1] // factor, factor)
     finite = np.isfinite(cells)
     total = np.where(finite, cells, 0.0).sum(axis=(1, 3), dtype=np.float64)
     count = finite.sum(axis=(1, 3))
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(count > 0, total / count, np.nan).astype(np.float32)
+
+
+def _block_fmax(block, factor):
+    """NaN-ignoring maximum of each ``factor`` x ``factor`` block of ``block``
+    (both sides multiples of ``factor``): the same values as ``np.fmax.reduce``
+    over the blocks' axes, taken as ``fmax`` of the ``factor ** 2`` strided
+    views, whole-array operations where a reduction over an axis of a few
+    elements runs an inner loop per element (several times slower)."""
+    out = block[::factor, ::factor].copy()
+    for i in range(factor):
+        for j in range(factor):
+            if i or j:
+                np.fmax(out, block[i::factor, j::factor], out=out)
+    return out
 
 
 def _grid_lines(edges, factor, size):
