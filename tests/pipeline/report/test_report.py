@@ -189,6 +189,32 @@ def test_block_max_keeps_single_pixel():
     assert small.sum() == 1 and small[37 // 16, 81 // 16] == 1
 
 
+@pytest.mark.parametrize("factor", [2, 3, 5])
+def test_block_max_and_preview_sums_equal_the_reductions_over_block_axes(factor):
+    """The strided-view block maximum and the previews' integer block sums give
+    the values of the plain reductions over each block's axes, NaN ignored
+    (an all-NaN block stays NaN), partial edge blocks included."""
+    from rsmb.pipeline.report._previews import reduce_preview
+
+    rng = np.random.default_rng(factor)
+    band = rng.random((40 * factor + 1, 30 * factor + 2), dtype=np.float32)
+    band[rng.random(band.shape) < 0.4] = np.nan
+    band[:factor, :factor] = np.nan  # a block with no value
+    padded = np.pad(band, ((0, -band.shape[0] % factor), (0, -band.shape[1] % factor)), constant_values=np.nan)
+    cells = padded.reshape(padded.shape[0] // factor, factor, padded.shape[1] // factor, factor)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        expected = np.nanmax(cells, axis=(1, 3))
+    got = block_reduce(band, factor, "max")
+    np.testing.assert_array_equal(got, expected)
+    assert np.isnan(got[0, 0])
+    rgba = rng.integers(0, 256, (24 * factor, 16 * factor, 4), dtype=np.uint8)
+    rgba[..., 3] = 255
+    h, w = rgba.shape[:2]
+    mean = rgba[..., :3].astype(np.float32).reshape(h // factor, factor, w // factor, factor, 3).mean(axis=(1, 3))
+    np.testing.assert_array_equal(reduce_preview(rgba, factor)[..., :3], (mean + np.float32(0.5)).astype(np.uint8))
+
+
 def test_overlay_colours():
     gray = np.tile(np.linspace(0, 1, 40, dtype=np.float32), (30, 1))
     gray[0:3, 0:3] = np.nan
