@@ -31,7 +31,8 @@ from ._lock import FileLock, LockBusy, LockError, acquire_lock
 from ._luminance import as_float01
 from ._products import ChangePolygon, change_polygons, write_changes_gpkg, write_cog
 from ._stitch import TileLabels, merge_tile_labels
-from ._store import ArraySpec, create_result_store, open_result_store, update_attrs, write_array
+from ._store import (IMAGE_COMPRESSORS, ArraySpec, create_result_store, open_result_store, update_attrs,
+                     write_array)
 from ._store_atomic import (
     abort_result_store,
     check_writable,
@@ -43,6 +44,7 @@ from ._store_atomic import (
 )
 
 __all__ = [
+    "IMAGE_COMPRESSORS",
     "RasterGrid",
     "Coverage",
     "Pairing",

@@ -42,6 +42,9 @@ __all__ = [
 
 # image arrays of the output store (see ArraySpec.compressed)
 _COMPRESSORS = {"name": "blosc", "configuration": {"cname": "lz4", "clevel": 5, "shuffle": "shuffle"}}
+#: The codec of the output store's image arrays (Blosc LZ4, byte shuffle), for arrays written outside
+#: :func:`create_result_store` (zarr's own default, Zstandard, costs more to write and to read).
+IMAGE_COMPRESSORS = _COMPRESSORS
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,8 @@ import warnings
 
 import numpy as np
 
+from rsmb import tiles
+
 from ._report_figures import _reduce_band
 
 __all__ = ["PREVIEW_NAMES", "PREVIEW_SIDE", "preview_factor", "read_preview", "reduce_preview", "write_previews"]
@@ -70,7 +72,8 @@ def write_previews(group, pairing, *, side=PREVIEW_SIDE):
     for name, rgba, where in (("preview_reference", reference, frame),
                               ("preview_capture", capture, "sensor: the capture's own pixels")):
         array = group.create_array(name, shape=rgba.shape, dtype="uint8", chunks=rgba.shape,
-                                   dimension_names=["preview_row", "preview_col", "rgba"], overwrite=True)
+                                   dimension_names=["preview_row", "preview_col", "rgba"], overwrite=True,
+                                   compressors=tiles.IMAGE_COMPRESSORS)
         array[:] = rgba
         array.update_attributes({"factor": factor, "frame": where,
                             "description": "RGBA preview, block mean of factor x factor input pixels; "
@@ -225,10 +228,14 @@ def _to_rgba(bands, eight_bit):
     """``(n, h, w)`` float bands (NaN: no data) -> uint8 RGBA ``(h, w, 4)``."""
     valid = np.isfinite(bands).all(axis=0)
     if eight_bit:
-        scaled = bands
+        scaled = bands + 0.5
     else:
         lo, hi = np.percentile(bands[:, valid], _STRETCH) if valid.any() else (0.0, 1.0)
         scaled = (bands - lo) * (255.0 / max(float(hi - lo), 1e-12))
-    rgb = np.clip(np.nan_to_num(scaled, nan=0.0) + 0.5, 0, 255).astype(np.uint8)
+        scaled += 0.5
+    # in place on the one new array (the same values as np.clip(np.nan_to_num(s, nan=0) + 0.5, 0, 255)):
+    # NaN + 0.5 is NaN, and 0.5 on no-data instead of 0 rounds down to the same 0
+    np.nan_to_num(scaled, copy=False, nan=0.0)
+    rgb = np.clip(scaled, 0, 255, out=scaled).astype(np.uint8)
     rgb = np.repeat(rgb, 3, axis=0) if rgb.shape[0] == 1 else rgb
     return np.concatenate([np.moveaxis(rgb, 0, -1), (valid * 255).astype(np.uint8)[..., None]], axis=-1)
