@@ -183,9 +183,12 @@ def _resolve_rows(registration, reference, g, inverse_depth, exclude, rows, came
         poses6 = full_poses(grid, axes)
         if registration.slow is not None:
             poses6 = poses6 + registration.slow.pose6(int(i))
+        wanted = registration.valid[i] & ~exclude[i]
+        if wanted.sum() < _Solver.min_valid(wanted.size):
+            continue
         a = np.zeros((len(grid), g.shape[1]), np.float32)
-        ok = _build_row_depth(ref, poses6, inverse_depth[i].astype(np.float64), focal, cx, cy, i + dy, dx, a)
-        use = (ok == 1) & registration.valid[i] & ~exclude[i]
+        ok = _build_row_depth(ref, poses6, np.where(wanted, inverse_depth[i], np.nan), focal, cx, cy, i + dy, dx, a)
+        use = (ok == 1) & wanted
         if use.sum() < _Solver.min_valid(use.size):
             continue
         a[:, ~use] = 0.0
@@ -235,15 +238,22 @@ def _warm_start(space, index, poses, w):
 def _build_row_depth(ref, poses6, q, focal, cx, cy, y, dx, out):
     """``out`` (K, W): column ``k`` of ``F_i`` at every pixel ``j`` of capture
     row ``y`` (reference frame) sampled at pose ``k`` with translations and
-    scale times ``q[j]``; 0 where a pose leaves valid data.  Returns uint8 (W,),
-    1 where every pose sampled valid data."""
+    scale times ``q[j]``; 0 where a pose leaves valid data and at pixels whose
+    ``q`` is NaN (not wanted: not sampled).  Returns uint8 (W,), 1 where every
+    pose sampled valid data."""
     k_count, width = out.shape
     valid = np.ones(width, np.uint8)
+    for j in range(width):
+        if np.isnan(q[j]):
+            valid[j] = 0
     for k in range(k_count):
         p = poses6[k]
         m, tx, ty, sc = _inverse_map(p, focal, cx, cy)
         s = sc - 1.0
         for j in range(width):
+            if valid[j] == 0 and np.isnan(q[j]):
+                out[k, j] = 0.0
+                continue
             v = _sample(ref, m, tx * q[j], ty * q[j], 1.0 + s * q[j], j + dx, y, cx, cy)
             if np.isnan(v):
                 valid[j] = 0
