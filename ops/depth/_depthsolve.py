@@ -28,6 +28,7 @@ it, and only rows holding such pixels are solved again.
 
 import dataclasses
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -234,30 +235,82 @@ def _warm_start(space, index, poses, w):
     return out
 
 
-@numba.njit(nogil=True, cache=True)
+class _DepthRow(NamedTuple):
+    """One capture row's columns to build (:func:`_build_row_depth`): the
+    reference window, the poses (K, 6), each pixel's inverse depth (NaN: not
+    wanted), the poses ordered by group (``order``; group ``n`` is
+    ``order[starts[n]:starts[n + 1]]``: the same ty, s and rotations and
+    translations ``tx`` an integer number of pixels apart), the geometry and
+    the row (reference frame)."""
+
+    ref: np.ndarray
+    poses6: np.ndarray
+    q: np.ndarray
+    order: np.ndarray
+    starts: np.ndarray
+    focal: float
+    cx: float
+    cy: float
+    y: float
+    dx: float
+
+
 def _build_row_depth(ref, poses6, q, focal, cx, cy, y, dx, out):
     """``out`` (K, W): column ``k`` of ``F_i`` at every pixel ``j`` of capture
     row ``y`` (reference frame) sampled at pose ``k`` with translations and
     scale times ``q[j]``; 0 where a pose leaves valid data and at pixels whose
     ``q`` is NaN (not wanted: not sampled).  Returns uint8 (W,), 1 where every
-    pose sampled valid data."""
+    pose sampled valid data.
+
+    At inverse depth 1 a pose's sample at pixel ``j`` depends on ``x - tx``
+    alone, so the poses of a group (:class:`_DepthRow`) share one row of
+    samples, shifted by their ``tx``; other depths are sampled pose by pose."""
+    poses6 = np.ascontiguousarray(poses6, np.float64)
+    key = np.column_stack([poses6[:, 1:], poses6[:, 0] - np.floor(poses6[:, 0])])
+    _, group = np.unique(key, axis=0, return_inverse=True)
+    group = group.ravel()
+    order = np.argsort(group, kind="stable")
+    starts = np.searchsorted(group[order], np.arange(group.max() + 2 if len(group) else 1))
+    row = _DepthRow(ref, poses6, np.asarray(q, np.float64), order, starts, float(focal), float(cx), float(cy),
+                    float(y), float(dx))
+    return _columns_at_depth(row, out)
+
+
+@numba.njit(nogil=True, cache=True)
+def _columns_at_depth(row, out):
+    """:func:`_build_row_depth`'s kernel."""
     k_count, width = out.shape
+    q, poses6 = row.q, row.poses6
     valid = np.ones(width, np.uint8)
     for j in range(width):
         if np.isnan(q[j]):
             valid[j] = 0
-    for k in range(k_count):
-        p = poses6[k]
-        m, tx, ty, sc = _inverse_map(p, focal, cx, cy)
+    for g in range(row.starts.shape[0] - 1):
+        a, b = row.starts[g], row.starts[g + 1]
+        m, _, ty, sc = _inverse_map(poses6[row.order[a]], row.focal, row.cx, row.cy)
         s = sc - 1.0
-        for j in range(width):
-            if valid[j] == 0 and np.isnan(q[j]):
-                out[k, j] = 0.0
-                continue
-            v = _sample(ref, m, tx * q[j], ty * q[j], 1.0 + s * q[j], j + dx, y, cx, cy)
-            if np.isnan(v):
-                valid[j] = 0
-                out[k, j] = 0.0
-            else:
-                out[k, j] = v
+        hi, lo = -np.inf, np.inf
+        for n in range(a, b):
+            hi, lo = max(hi, poses6[row.order[n], 0]), min(lo, poses6[row.order[n], 0])
+        shared = b - a > 1
+        base = np.empty(width + int(hi - lo) if shared else 0)
+        for t in range(base.shape[0]):  # x - tx for the group's poses, from the largest tx
+            base[t] = _sample(row.ref, m, 0.0, ty, sc, t + row.dx - hi, row.y, row.cx, row.cy)
+        for n in range(a, b):
+            k = row.order[n]
+            tx = poses6[k, 0]
+            off = int(np.rint(hi - tx))
+            for j in range(width):
+                if valid[j] == 0 and np.isnan(q[j]):
+                    out[k, j] = 0.0
+                    continue
+                if shared and q[j] == 1.0:
+                    v = base[off + j]
+                else:
+                    v = _sample(row.ref, m, tx * q[j], ty * q[j], 1.0 + s * q[j], j + row.dx, row.y, row.cx, row.cy)
+                if np.isnan(v):
+                    valid[j] = 0
+                    out[k, j] = 0.0
+                else:
+                    out[k, j] = v
     return valid

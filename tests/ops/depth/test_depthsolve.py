@@ -10,7 +10,7 @@ import pytest
 from scipy import ndimage
 
 from rsmb import ops
-from rsmb.ops.depth._depthsolve import _build_row_depth, _resolve_rows
+from rsmb.ops.depth._depthsolve import _build_row_depth, _columns_at_depth, _DepthRow, _resolve_rows
 from rsmb.ops._warp import _build_row
 
 
@@ -46,6 +46,28 @@ def test_columns_scale_translations_by_inverse_depth():
     _build_row_depth(ref, pose, q, 100.0, 48.0, 32.0, 30.0, 8.0, a)
     _build_row_depth(ref, half, np.ones(80), 100.0, 48.0, 32.0, 30.0, 8.0, b)
     np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+def test_columns_shared_by_shifts_equal_columns_sampled_pose_by_pose():
+    """Poses a whole number of pixels apart in tx (the rest equal) share one
+    row of samples at inverse depth 1; every column equals the one sampled
+    pose by pose, at q = 1, at other depths and where a pixel is not wanted."""
+    ref = _texture((64, 120), 4)
+    rng = np.random.default_rng(4)
+    poses6 = np.zeros((40, 6))
+    poses6[:, 0] = rng.integers(-6, 7, 40) + np.where(np.arange(40) < 30, 0.0, 0.5)
+    poses6[:, 1] = rng.integers(-2, 3, 40)
+    poses6[:, 5] = rng.choice([-0.2, 0.0, 0.3], 40)
+    q = np.where(rng.random(80) < 0.6, 1.0, rng.uniform(0.4, 0.9, 80))
+    q[::9] = np.nan
+    shared = np.zeros((40, 80), np.float32)
+    ok = _build_row_depth(ref, poses6, q, 100.0, 60.0, 32.0, 30.0, 14.0, shared)
+    alone = np.zeros((40, 80), np.float32)
+    row = _DepthRow(ref, poses6, q, np.arange(40), np.arange(41), 100.0, 60.0, 32.0, 30.0, 14.0)
+    ok_alone = _columns_at_depth(row, alone)
+    np.testing.assert_array_equal(ok, ok_alone)
+    np.testing.assert_allclose(shared, alone, atol=1e-6)
+    assert not shared[:, ::9].any() and ok[::9].sum() == 0
 
 
 def test_a_row_of_two_depths_is_solved_onto_the_true_motion():
