@@ -8,8 +8,14 @@ and s) are divided by a relative depth ``rho`` (rotations stay), the
 reference is warped and blurred again at that depth inside the component, and
 its pixels whose residual falls below the change threshold are *explained*.
 
-A component is **parallax, not change** when at its best depth (the one that
-explains most of its pixels):
+A component's depth is the one that explains most of its pixels less the
+pixels of the ground ring around it (:data:`RING`: explained on the plane,
+within that many px of the component) that it leaves unexplained: a layer
+tried nearer than its own paints its edge over the ground beside it, and on a
+uniform roof that is the only thing that tells the depths apart (its pixels
+are explained at every depth that moves the roof over them).
+
+A component is **parallax, not change** when at its depth:
 
 - at least :data:`MIN_EXPLAINED` of its pixels are explained, and
 - explained pixels plus the *disoccluded* ones, pixels whose ground point
@@ -29,6 +35,7 @@ candidate (``kept``), judged at the layer's depth only.
 """
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -43,6 +50,11 @@ __all__ = ["LayerParams", "LayerResult", "depth_layers", "sees_a_layer_elsewhere
 
 MIN_EXPLAINED = 0.25
 MIN_COVERED = 0.6
+#: Width (px) of the ground ring judged with a component's depth.  The ring's
+#: first pixels show a layer painted beyond its edge; a wider ring takes in
+#: ground whose texture a small shift still explains, which favours the depths
+#: near the ground's.
+RING = 2
 
 
 @dataclass(frozen=True)
@@ -142,11 +154,14 @@ def depth_layers(registration, reference, distorted, *, camera, threshold, refer
     if count == 0:
         return out
     frame = _Frame(registration, reference, distorted, camera, reference_origin_yx, distorted_origin_yx)
+    plane = registration.valid & ~candidates & np.isfinite(registration.registered)  # the ground the plane explains
     for index, box in enumerate(ndimage.find_objects(labels), start=1):
+        box = tuple(slice(max(b.start - RING, 0), min(b.stop + RING, n)) for b, n in zip(box, labels.shape))
         component = (labels[box] == index) & candidates[box]
         if component.sum() < params.min_area:
             continue
-        found = _test_component(frame, box, component, params.depths, threshold, params.min_area)
+        ring = plane[box] & ~component & ndimage.binary_dilation(component, np.ones((3, 3), bool), iterations=RING)
+        found = _test_component(frame, box, component, ring, params.depths, threshold, params.min_area)
         if found is not None:
             _mark(out, frame, box, component, found, lambda_chi)
     return out
@@ -159,21 +174,9 @@ class _Frame:
 
     def __init__(self, registration, reference, distorted, camera, reference_origin_yx, distorted_origin_yx):
         self.reg, self.ref, self.dist = registration, np.asarray(reference, np.float32), distorted
-        self.dy = int(distorted_origin_yx[0] - reference_origin_yx[0])
-        self.dx = int(distorted_origin_yx[1] - reference_origin_yx[1])
-        self.camera, self.origin = camera, reference_origin_yx
+        self.carry = _Carry.of(registration, camera, reference_origin_yx, distorted_origin_yx)
         self.scene = _RowPoses.of(registration, distorted.shape[0]).scene(
             self.ref, _geometry(camera, reference_origin_yx, distorted_origin_yx))
-
-    @classmethod
-    def light(cls, registration, reference_shape, camera, reference_origin_yx, distorted_origin_yx):
-        """A frame for :func:`_to_reference` only (no reference values, no scene)."""
-        frame = cls.__new__(cls)
-        frame.reg, frame.ref, frame.camera, frame.origin = registration, np.zeros(reference_shape, np.float32), camera, \
-            reference_origin_yx
-        frame.dy = int(distorted_origin_yx[0] - reference_origin_yx[0])
-        frame.dx = int(distorted_origin_yx[1] - reference_origin_yx[1])
-        return frame
 
     def render(self, rows, cols, q):
         """The registered window ``rows`` x ``cols`` re-rendered at inverse depth
@@ -182,9 +185,30 @@ class _Frame:
         return render_at(self.scene, q, np.ones(shape, bool), (rows.start, cols.start))
 
 
-def _test_component(frame, box, component, depths, threshold, min_area):
-    """(depth, rendered window, explained, disoccluded) of the depth that
-    makes the component parallax, or None."""
+class _Carry(NamedTuple):
+    """What carrying capture pixels into the reference window needs
+    (:func:`_to_reference`): the registration (its rows' centroid poses), the
+    camera, the reference window's origin and the capture window's offset in
+    it (px)."""
+
+    reg: object
+    camera: object
+    origin: tuple
+    dy: int
+    dx: int
+
+    @classmethod
+    def of(cls, registration, camera, reference_origin_yx, distorted_origin_yx):
+        dy = int(distorted_origin_yx[0] - reference_origin_yx[0])
+        dx = int(distorted_origin_yx[1] - reference_origin_yx[1])
+        return cls(registration, camera, tuple(reference_origin_yx), dy, dx)
+
+
+def _test_component(frame, box, component, ring, depths, threshold, min_area):
+    """(depth, rendered window, explained, disoccluded, footprint, on_layer)
+    of the depth that makes the component parallax, or None.  A depth's
+    score: the component's pixels it explains less the ``ring`` pixels (the
+    ground beside it, explained on the plane) it leaves unexplained."""
     g = frame.dist[box]
     pixels = int(component.sum())
     tried = {}
@@ -192,17 +216,19 @@ def _test_component(frame, box, component, depths, threshold, min_area):
     def explain(depth):
         if depth not in tried:
             rendered = frame.render(box[0], box[1], 1.0 / depth)  # depths swept, inverse depths rendered
-            explained = component & (np.abs(g - rendered) < threshold)
-            tried[depth] = (int(explained.sum()), depth, rendered, explained)
+            fits = np.abs(g - rendered) < threshold
+            explained = component & fits
+            tried[depth] = (int(explained.sum()) - int((ring & ~fits).sum()), depth, rendered, explained)
         return tried[depth]
 
     # every fourth depth first, then the depths around the best of them
     coarse = max((explain(d) for d in depths[::4]), key=lambda t: t[0])
-    if coarse[0] < 0.5 * MIN_EXPLAINED * pixels:
+    if coarse[3].sum() < 0.5 * MIN_EXPLAINED * pixels:
         return None  # nothing like a layer: a change
     step = 4 * (depths[1] - depths[0]) if len(depths) > 1 else 0.0
     near = [d for d in depths if abs(d - coarse[1]) <= step + 1e-9]
-    count, depth, rendered, explained = max((explain(d) for d in near), key=lambda t: t[0])
+    _, depth, rendered, explained = max((explain(d) for d in near), key=lambda t: t[0])
+    count = int(explained.sum())
     if count < MIN_EXPLAINED * pixels:
         return None
     # the layer's footprint from the pixels its depth alone explains: flat ground
@@ -229,7 +255,7 @@ def _test_component(frame, box, component, depths, threshold, min_area):
     rest = component & ~explained & ~disoccluded
     on_layer = np.zeros_like(rest)
     if rest.any() and footprint.any():
-        on_layer[rest] = _lookup(footprint, _to_reference(frame, box, rest, 1.0 / depth))
+        on_layer[rest] = _lookup(footprint, _to_reference(frame.carry, box, rest, 1.0 / depth))
     return depth, rendered, explained, disoccluded, footprint, on_layer
 
 
@@ -262,10 +288,10 @@ def sees_a_layer_elsewhere(layers, registration, pixels, inverse_depth, *, camer
     out = np.zeros(pixels.shape, bool)
     if layers.footprint is None or not pixels.any():
         return out
-    frame = _Frame.light(registration, layers.footprint.shape, camera, reference_origin_yx, distorted_origin_yx)
+    carry = _Carry.of(registration, camera, reference_origin_yx, distorted_origin_yx)
     whole = (slice(0, pixels.shape[0]), slice(0, pixels.shape[1]))
     q = inverse_depth[pixels].astype(np.float64)
-    points = np.round(_to_reference(frame, whole, pixels, q)).astype(int)
+    points = np.round(_to_reference(carry, whole, pixels, q)).astype(int)
     r, c = points.T
     ok = (r >= 0) & (c >= 0) & (r < layers.footprint.shape[0]) & (c < layers.footprint.shape[1])
     label = np.zeros(len(q), np.int32)
@@ -297,7 +323,8 @@ def _footprint(frame, box, explained, decisive, q):
     beside a layer is explained at its depth too and would widen it."""
     if not decisive.any():
         return np.zeros(frame.ref.shape, bool)
-    return _filled(frame, _to_reference(frame, box, explained, q)) & _hull(frame, _to_reference(frame, box, decisive, q))
+    inside = _filled(frame, _to_reference(frame.carry, box, explained, q))
+    return inside & _hull(frame, _to_reference(frame.carry, box, decisive, q))
 
 
 def _disoccluded(frame, box, pixels, footprint, q):
@@ -308,8 +335,8 @@ def _disoccluded(frame, box, pixels, footprint, q):
     if not pixels.any() or not footprint.any():
         return np.zeros_like(pixels)
     near = cv2.dilate(footprint.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-    hit = _lookup(near, _to_reference(frame, box, pixels, 1.0)) & \
-        ~_lookup(footprint, _to_reference(frame, box, pixels, q))
+    hit = _lookup(near, _to_reference(frame.carry, box, pixels, 1.0)) & \
+        ~_lookup(footprint, _to_reference(frame.carry, box, pixels, q))
     out = np.zeros_like(pixels)
     out[pixels] = hit
     return out
@@ -350,19 +377,19 @@ def _lookup(mask, points):
     return hit
 
 
-def _to_reference(frame, box, pixels, q):
+def _to_reference(carry, box, pixels, q):
     """Reference-window (row, col) of the window ``pixels`` (bool in ``box``)
     carried by each row's centroid pose at inverse depth ``q`` (a number, or
     one per pixel of ``pixels``, in their order)."""
     rows, cols = np.nonzero(pixels)
     rows = rows + box[0].start
     cols = cols + box[1].start
-    poses = frame.reg.trajectory[rows].copy()
-    p6 = full_poses(poses, frame.reg.axes)
+    poses = carry.reg.trajectory[rows].copy()
+    p6 = full_poses(poses, carry.reg.axes)
     p6[:, :3] *= np.reshape(np.asarray(q, np.float64), (-1, 1))
-    window_rows = rows + frame.dy
-    hom = pose_homographies(p6, frame.camera, origin_yx=frame.origin, inverse=True)
-    pts = hom @ np.stack([cols + frame.dx, window_rows, np.ones(len(rows))])[None].transpose(2, 1, 0)
+    window_rows = rows + carry.dy
+    hom = pose_homographies(p6, carry.camera, origin_yx=carry.origin, inverse=True)
+    pts = hom @ np.stack([cols + carry.dx, window_rows, np.ones(len(rows))])[None].transpose(2, 1, 0)
     pts = pts[..., 0]
     return np.stack([pts[:, 1] / pts[:, 2], pts[:, 0] / pts[:, 2]], 1)
 

@@ -140,3 +140,20 @@ def test_an_object_on_a_roof_is_judged_against_the_roof():
     score = np.where(layers.parallax | ~reg.valid, 0.0, ops.change_score(layers.chi, layers.registered, params=changes))
     mask = ops.change_mask(score, threshold, params=changes)
     assert mask[roof].mean() >= 0.9 and layers.parallax[roof].mean() <= 0.05
+
+
+@pytest.mark.parametrize("seed", [9, 14])
+def test_every_block_is_a_layer_at_its_own_depth(seed):
+    """A uniform roof is explained at every depth that moves it over its
+    component's pixels, nearer ones included: what tells its depth is the
+    ground beside it, which a nearer depth paints over.  Both blocks of the
+    small case are found, each within one depth step (0.05) of its true depth
+    (on these seeds the component's own count alone found one block only)."""
+    from rsmb.ops.synthetic._raised import raised_pair
+
+    pair, _ = raised_pair((256, 256), seed=seed, blocks=2, away=1, block_size=(36, 48), object_size=(14, 20))
+    _, _, layers = _tile_method(pair, ops.RegistrationParams())
+    found = sorted(c["depth"] for c in layers.components if c["pixels"] > 200)
+    assert len(found) == 2, (found, pair.depths)
+    assert np.abs(np.array(found) - np.sort(pair.depths)).max() <= 0.05 + 1e-9, (found, pair.depths)
+
