@@ -321,16 +321,18 @@ def _pose_maps(poses6, focal, cx, cy):
 
 
 @numba.njit(nogil=True, cache=True)
-def _render_pixel(ref, maps, poses6, weights, s0, s1, q, x, y, cx, cy):
-    """One pixel of a row: the weighted sum of the samples of its poses
-    ``s0:s1`` at inverse depth ``q`` (translations and scale times ``q``; no
-    gain); NaN where a pose leaves valid reference data."""
+def _render_pixel(scene, s0, s1, q, x, y):
+    """One pixel (x, y) of a row: the weighted sum of the samples of the
+    :class:`_Scene`'s poses ``s0:s1`` at inverse depth ``q`` (translations and
+    scale times ``q``; no gain); NaN where a pose leaves valid reference data."""
     acc = 0.0
+    poses6 = scene.poses6
     for k in range(s0, s1):
-        val = _sample(ref, maps[k], poses6[k, 0] * q, poses6[k, 1] * q, 1.0 + poses6[k, 2] * q, x, y, cx, cy)
+        val = _sample(scene.ref, scene.maps[k], poses6[k, 0] * q, poses6[k, 1] * q, 1.0 + poses6[k, 2] * q, x, y,
+                      scene.cx, scene.cy)
         if math.isnan(val):
             return np.nan
-        acc += weights[k] * val
+        acc += scene.weights[k] * val
     return acc
 
 
@@ -347,8 +349,7 @@ def _render_depth(scene, q, mask, out, r0, c0):
             continue
         for j in range(width):
             if mask[i, j] != 0:
-                val = _render_pixel(scene.ref, scene.maps, scene.poses6, scene.weights, s0, s1, q,
-                                    c0 + j + scene.dx, r0 + i + scene.dy, scene.cx, scene.cy)
+                val = _render_pixel(scene, s0, s1, q, c0 + j + scene.dx, r0 + i + scene.dy)
                 if not math.isnan(val):
                     out[i, j] = val * (scene.gain[c0 + j] if per_column else 1.0)
 
