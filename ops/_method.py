@@ -189,12 +189,11 @@ def _bounded(capture, intensity, result, bounds, params):
     where there is no evidence, or None when nothing is clipped (no
     intensity scale) or every capture pixel with data has its model.
     ``capture``: the window as ingested."""
-    need = ~result.valid & np.isfinite(capture)
+    need = _unmodelled(result, capture)
     if bounds is None or not need.any():
         return None
-    factor = np.float32(intensity.scaled(1.0))
-    cap_high, cap_low = _at_clip(capture, intensity.capture_clip)
-    chi = bounded_score(capture * factor, bounds, cap_high, cap_low, lambda_chi=params.lambda_chi)
+    scaled, cap_high, cap_low = _clipped_on_scale(capture, intensity, intensity.capture_clip)
+    chi = bounded_score(scaled, bounds, cap_high, cap_low, lambda_chi=params.lambda_chi)
     return np.where(need, chi, np.nan), bounds.model
 
 
@@ -205,12 +204,24 @@ def _clip_bounds(result, capture, reference, intensity, camera, origins):
     pixel has its model.  Computed once: it depends only on the rows' active
     poses, which the steps after it do not change.  ``capture``,
     ``reference``: the windows as ingested."""
-    need = ~result.valid & np.isfinite(capture)
+    need = _unmodelled(result, capture)
     if intensity is None or not need.any():
         return None
-    factor = np.float32(intensity.scaled(1.0))
-    ref_high, ref_low = _at_clip(reference, intensity.reference_clip)
-    return model_bounds(result, reference * factor, ref_high, ref_low, need, camera=camera, **origins)
+    scaled, ref_high, ref_low = _clipped_on_scale(reference, intensity, intensity.reference_clip)
+    return model_bounds(result, scaled, ref_high, ref_low, need, camera=camera, **origins)
+
+
+def _unmodelled(result, capture):
+    """Capture pixels with data that the registration left without a model."""
+    return ~result.valid & np.isfinite(capture)
+
+
+def _clipped_on_scale(values, intensity, levels):
+    """An image as ingested on the common scale (clipped pixels at their clip
+    levels, times the scale's factor), and its pixels at or beyond its clip
+    ``levels`` (high, low)."""
+    high, low = _at_clip(values, levels)
+    return values * np.float32(intensity.scaled(1.0)), high, low
 
 
 def _fitted_beside_clipped(result, distorted, bounds, params):
