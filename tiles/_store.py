@@ -40,11 +40,9 @@ __all__ = [
     "write_array",
 ]
 
-# image arrays of the output store (see ArraySpec.compressed)
-_COMPRESSORS = {"name": "blosc", "configuration": {"cname": "lz4", "clevel": 5, "shuffle": "shuffle"}}
-#: The codec of the output store's image arrays (Blosc LZ4, byte shuffle), for arrays written outside
+#: The codec of the output store's image arrays (Blosc LZ4, byte shuffle), also for arrays written outside
 #: :func:`create_result_store` (zarr's own default, Zstandard, costs more to write and to read).
-IMAGE_COMPRESSORS = _COMPRESSORS
+IMAGE_COMPRESSORS = {"name": "blosc", "configuration": {"cname": "lz4", "clevel": 5, "shuffle": "shuffle"}}
 
 
 @dataclass(frozen=True)
@@ -156,7 +154,7 @@ def create_result_store(
                 dtype=spec.dtype,
                 dimension_names=spec.dims,
                 fill_value=spec.fill_value,
-                compressors=_COMPRESSORS if spec.compressed else None,
+                compressors=IMAGE_COMPRESSORS if spec.compressed else None,
             )
     except BaseException:
         abort_result_store(tmp)
