@@ -470,7 +470,7 @@ def test_score_figure_draws_each_value_as_a_square_and_marks_the_threshold(tmp_p
 
     fig = score_figure(score, vmax=0.5, threshold=0.25, zoom=4)
     ax, cax = fig.axes
-    np.testing.assert_array_equal(ax.images[0].get_array(),
+    np.testing.assert_array_equal(ax.artists[0].get_array(),
                                   colormaps["inferno"].with_extremes(bad="white")(score / 0.5, bytes=True))
     assert cax.get_ylim() == (0.0, 0.5)
     cyan = [line for line in cax.lines if line.get_color() == "cyan"]
@@ -642,8 +642,8 @@ def test_before_after_figure_outlines_the_changes_on_both():
     fig = before_after_figure(before, after, ref_mask, cap_mask, titles=("before", "after"), factor=4)
     for ax, mask, title, image in zip(fig.axes, (ref_mask, cap_mask), ("before", "after"), (before, after)):
         assert ax.get_title() == title
-        np.testing.assert_array_equal(ax.images[0].get_array(), image)
-        assert ax.images[0].get_extent() == [0, 80 * 4, 50 * 4, 0]
+        np.testing.assert_array_equal(ax.artists[0].get_array(), image)
+        assert ax.get_xlim() == (0, 80 * 4) and ax.get_ylim() == (50 * 4, 0)
         contour = [c for c in ax.collections if hasattr(c, "levels")][0]
         vertices = np.concatenate([p.vertices for p in contour.get_paths() if len(p.vertices)])
         rows, cols = np.nonzero(mask)
@@ -693,3 +693,48 @@ def test_reduce_preview_averages_pixels_with_data():
         np.testing.assert_array_equal(reduce_preview(full, k)[..., :3], reduce_preview(general, k)[..., :3])
         np.testing.assert_array_equal(reduce_preview(full, k)[..., :3],
                                       np.floor(_block_mean(full[..., :3], k) + 0.5).astype(np.uint8))
+
+
+# --------------------------------------------------------------------------- pixels and PNG files
+
+
+@pytest.mark.parametrize("zoom", [1, 3])
+def test_pixels_draw_what_imshow_draws(zoom):
+    """An image drawn pixel for pixel into its axes' box gives the canvas
+    imshow gives at whole screen pixels per value, spines and no-data pixels
+    (alpha 0) included."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from rsmb.pipeline.report._report_plots import _axes_px, _draw_pixels, _px_figure
+
+    rng = np.random.default_rng(11)
+    rgba = rng.integers(0, 256, (37, 53, 4), dtype=np.uint8)
+    rgba[..., 3] = 255
+    rgba[:5, :7, 3] = 0  # no data: the axes' face shows through (the previews' alpha is 0 or 255)
+    canvases = []
+    for draw in ("imshow", "pixels"):
+        fig = _px_figure(53 * zoom + 90, 37 * zoom + 70)
+        ax = _axes_px(fig, 50, 30, 53 * zoom, 37 * zoom)
+        ax.set_facecolor("#808080")
+        extent = (0, 53 * 2, 37 * 2, 0)
+        if draw == "imshow":
+            ax.imshow(rgba, extent=extent, interpolation="nearest", resample=False)
+        else:
+            _draw_pixels(ax, rgba, extent, zoom)
+        ax.set_title("t")
+        canvas = FigureCanvasAgg(fig)
+        canvas.draw()
+        canvases.append(np.asarray(canvas.buffer_rgba()).copy())
+    np.testing.assert_array_equal(canvases[0], canvases[1])
+
+
+@pytest.mark.parametrize("channels", [3, 4])
+def test_write_png_reads_back(tmp_path, channels):
+    from rsmb.pipeline.report._png import write_png
+
+    rng = np.random.default_rng(12)
+    pixels = rng.integers(0, 256, (29, 41, channels), dtype=np.uint8)
+    assert write_png(pixels, tmp_path / "a.png") == {"size": (41, 29)}
+    with Image.open(tmp_path / "a.png") as im:
+        assert im.mode == ("RGB" if channels == 3 else "RGBA")
+        np.testing.assert_array_equal(np.asarray(im), pixels)
