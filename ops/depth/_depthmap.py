@@ -143,8 +143,9 @@ def depth_map(registration, reference, distorted, *, camera, threshold, referenc
     chosen = np.full(g.shape, np.nan, np.float32)
     depth = np.ones(g.shape, np.float32)
     scene = rows.scene(reference, _geometry(camera, reference_origin_yx, distorted_origin_yx))
-    fit = _Fit(np.ascontiguousarray(g), render_mask.astype(np.uint8), active.astype(np.uint8), tau,
-               int(params.window) // 2)
+    render_mask = render_mask.astype(np.uint8)
+    fit = _Fit(np.ascontiguousarray(g), render_mask, active.astype(np.uint8), tau, int(params.window) // 2,
+               _spans(render_mask))
     _sweep(scene, fit, qs.astype(np.float64), int(params.stride), _Best(best, chosen, depth, np.full(g.shape, -1)))
     take = active & np.isfinite(chosen) & (best <= params.gain * cost_plane)
     out.registered[take] = chosen[take]
@@ -269,13 +270,15 @@ class _Scene(NamedTuple):
 class _Fit(NamedTuple):
     """What the sweep compares renderings with: the capture window, where to
     render, which pixels choose a depth (uint8), the truncation ``tau`` and the
-    half side of the cost window (px)."""
+    half side of the cost window (px), and the rows' spans of the render mask
+    (:func:`_spans`; the active pixels lie within them)."""
 
     g: np.ndarray
     render_mask: np.ndarray
     active: np.ndarray
     tau: float
     half: int
+    spans: np.ndarray
 
 
 class _Best(NamedTuple):
@@ -305,8 +308,27 @@ def render_at(scene, q, mask, origin_yx=(0, 0)):
     window at ``origin_yx``): float32, NaN elsewhere and where a pose leaves
     valid reference data.  The one renderer of the depth steps."""
     out = np.full(mask.shape, np.nan, np.float32)
-    _render_depth(scene, float(q), np.ascontiguousarray(mask, np.uint8), out, int(origin_yx[0]), int(origin_yx[1]))
+    mask = np.ascontiguousarray(mask, np.uint8)
+    _render_depth(scene, float(q), mask, _spans(mask), out, int(origin_yx[0]), int(origin_yx[1]))
     return out
+
+
+@numba.njit(nogil=True, cache=True)
+def _spans(mask):
+    """Per row, the columns ``[first, last + 1)`` of the nonzero pixels of
+    ``mask`` ((0, 0) in a row without any): the loops over a sparse mask visit
+    only these."""
+    height, width = mask.shape
+    spans = np.zeros((height, 2), np.int64)
+    for i in range(height):
+        j0 = 0
+        while j0 < width and mask[i, j0] == 0:
+            j0 += 1
+        j1 = width
+        while j1 > j0 and mask[i, j1 - 1] == 0:
+            j1 -= 1
+        spans[i, 0], spans[i, 1] = j0, max(j1, j0)
+    return spans
 
 
 @numba.njit(nogil=True, cache=True)
@@ -321,37 +343,33 @@ def _pose_maps(poses6, focal, cx, cy):
 
 
 @numba.njit(nogil=True, cache=True)
-def _render_pixel(scene, s0, s1, q, x, y):
-    """One pixel (x, y) of a row: the weighted sum of the samples of the
-    :class:`_Scene`'s poses ``s0:s1`` at inverse depth ``q`` (translations and
-    scale times ``q``; no gain); NaN where a pose leaves valid reference data."""
-    acc = 0.0
-    poses6 = scene.poses6
-    for k in range(s0, s1):
-        val = _sample(scene.ref, scene.maps[k], poses6[k, 0] * q, poses6[k, 1] * q, 1.0 + poses6[k, 2] * q, x, y,
-                      scene.cx, scene.cy)
-        if math.isnan(val):
-            return np.nan
-        acc += scene.weights[k] * val
-    return acc
-
-
-@numba.njit(nogil=True, cache=True)
-def _render_depth(scene, q, mask, out, r0, c0):
+def _render_depth(scene, q, mask, spans, out, r0, c0):
     """``out[i, j]`` = capture row ``r0 + i``'s weighted poses at inverse depth
-    ``q`` applied to the reference at column ``c0 + j``, times the column gain,
-    where ``mask``; NaN where a pose leaves valid reference data."""
+    ``q`` (translations and scale times ``q``, rotations as they are) applied
+    to the reference at column ``c0 + j``, times the column gain, where
+    ``mask`` (nonzero only within ``spans``, :func:`_spans`); NaN where a pose
+    leaves valid reference data.  Pose by pose along the row, each pose's map
+    reduced to the row once (:func:`_row_map`)."""
     height, width = out.shape
     per_column = scene.gain.shape[0] != 1
+    acc = np.empty(width)
+    poses6 = scene.poses6
     for i in range(height):
         s0, s1 = scene.offsets[r0 + i], scene.offsets[r0 + i + 1]
-        if s0 == s1:
+        a, b = spans[i, 0], spans[i, 1]
+        if s0 == s1 or a >= b:
             continue
-        for j in range(width):
-            if mask[i, j] != 0:
-                val = _render_pixel(scene, s0, s1, q, c0 + j + scene.dx, r0 + i + scene.dy)
-                if not math.isnan(val):
-                    out[i, j] = val * (scene.gain[c0 + j] if per_column else 1.0)
+        acc[a:b] = 0.0
+        for k in range(s0, s1):
+            row = _row_map(scene.maps[k], poses6[k, 0] * q, poses6[k, 1] * q, 1.0 + poses6[k, 2] * q,
+                           r0 + i + scene.dy, scene.cx, scene.cy)
+            for j in range(a, b):
+                if mask[i, j] != 0:
+                    u, v = _point_on_row(row, c0 + j + scene.dx)
+                    acc[j] += scene.weights[k] * _bilinear(scene.ref, u, v)  # NaN stays NaN
+        for j in range(a, b):
+            if mask[i, j] != 0 and not math.isnan(acc[j]):
+                out[i, j] = acc[j] * (scene.gain[c0 + j] if per_column else 1.0)
 
 
 @numba.njit(nogil=True, cache=True)
@@ -392,18 +410,18 @@ def _one_depth(scene, fit, q, k, lo, hi, stride, scratch, best):
     (``lo``, ``hi``: the window's range of them) are rendered, and only such
     active pixels are evaluated."""
     want, err, rendered, across = scratch
-    tau, half, g = fit.tau, fit.half, fit.g
+    tau, half, g, spans = fit.tau, fit.half, fit.g, fit.spans
     height, width = err.shape
     area = float((2 * half + 1) * (2 * half + 1))
 
     for i in range(height):
-        for j in range(width):
+        for j in range(spans[i, 0], spans[i, 1]):
             want[i, j] = fit.render_mask[i, j] != 0 and (stride < 0 or (lo[i, j] - stride < k < hi[i, j] + stride))
             if want[i, j]:
                 rendered[i, j] = np.nan
-    _render_depth(scene, q, want, rendered, 0, 0)
+    _render_depth(scene, q, want, spans, rendered, 0, 0)
     for i in range(height):
-        for j in range(width):
+        for j in range(spans[i, 0], spans[i, 1]):
             if want[i, j] != 0:
                 if math.isnan(rendered[i, j]):
                     err[i, j] = tau
@@ -411,14 +429,14 @@ def _one_depth(scene, fit, q, k, lo, hi, stride, scratch, best):
                     e = abs(g[i, j] - rendered[i, j])
                     err[i, j] = tau if e > tau else e  # NaN (no capture data) stays NaN
     for i in range(height):
-        for j in range(width):
+        for j in range(spans[i, 0], spans[i, 1]):
             if want[i, j] != 0:
                 acc = 0.0
                 for d in range(-half, half + 1):
                     acc += err[i, min(max(j + d, 0), width - 1)]
                 across[i, j] = acc
     for i in range(height):
-        for j in range(width):
+        for j in range(spans[i, 0], spans[i, 1]):
             if fit.active[i, j] == 0 or math.isnan(rendered[i, j]):
                 continue
             if stride > 0 and not (best.index[i, j] >= 0 and abs(k - best.index[i, j]) < stride):
@@ -473,7 +491,21 @@ def _point(m, tx, ty, sc, x, y, cx, cy):
     """The point (u, v) (column, row) of the reference window that a pose
     (rotation map ``m``, translations ``tx``, ``ty`` px, scale ``sc``)
     carries capture pixel (x, y) to."""
-    ux = (x - cx - tx) / sc
+    return _point_on_row(_row_map(m, tx, ty, sc, y, cx, cy), x)
+
+
+@numba.njit(nogil=True, cache=True)
+def _row_map(m, tx, ty, sc, y, cx, cy):
+    """:func:`_point`'s map reduced to capture row ``y``: what
+    :func:`_point_on_row` needs for any column of it."""
     uy = (y - cy - ty) / sc
-    h2 = m[6] * ux + m[7] * uy + m[8]
-    return (m[0] * ux + m[1] * uy + m[2]) / h2 + cx, (m[3] * ux + m[4] * uy + m[5]) / h2 + cy
+    return (m[0], m[3], m[6], m[1] * uy + m[2], m[4] * uy + m[5], m[7] * uy + m[8], cx + tx, 1.0 / sc, cx, cy)
+
+
+@numba.njit(nogil=True, cache=True)
+def _point_on_row(row, x):
+    """:func:`_point` at column ``x`` of the row :func:`_row_map` reduced to."""
+    m0, m3, m6, cu, cv, ch, x0, inverse_scale, cx, cy = row
+    ux = (x - x0) * inverse_scale
+    h = 1.0 / (m6 * ux + ch)
+    return (m0 * ux + cu) * h + cx, (m3 * ux + cv) * h + cy
