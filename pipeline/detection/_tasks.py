@@ -125,7 +125,8 @@ class RunStore:
 
 @functools.lru_cache(maxsize=32)
 def _array(store, name):
-    return zarr.open_group(store=store.path, mode="r+")[name]
+    # the array's own metadata only: opening the group first reads its metadata and probes for zarr v2's
+    return zarr.open_array(store=store.path, path=name, mode="r+", zarr_format=3)
 
 
 def cpu_timed(func, *args):
