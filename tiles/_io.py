@@ -216,6 +216,7 @@ def write_geotiff(
     *,
     nodata: float | None = None,
     description: str | None = None,
+    compress: str | None = "deflate",
 ) -> Path:
     """Write a single-band GeoTIFF (deflate compressed, 256 x 256 tiles).
 
@@ -233,6 +234,9 @@ def write_geotiff(
         Nodata value to record in the file.
     description : str, optional
         Band description (what the values are), shown by GIS tools.
+    compress : str or None
+        GDAL compression; None writes the tiles uncompressed (a scratch file
+        that is read once, as :func:`tiles.write_cog`'s).
 
     Returns
     -------
@@ -269,7 +273,6 @@ def write_geotiff(
         "width": array.shape[1],
         "count": 1,
         "dtype": dtype.name,
-        "compress": "deflate",
         "tiled": True,
         "blockxsize": _GEOTIFF_BLOCK,
         "blockysize": _GEOTIFF_BLOCK,
@@ -280,6 +283,8 @@ def write_geotiff(
         profile["transform"] = Affine(*geo.transform)
     if nodata is not None:
         profile["nodata"] = nodata
+    if compress is not None:
+        profile["compress"] = compress
     out = Path(path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NotGeoreferencedWarning)

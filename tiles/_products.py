@@ -120,8 +120,9 @@ def write_cog(
     if overview_resampling is None:
         overview_resampling = "average" if dtype.kind == "f" else "nearest"
     with _aside(final) as tmp:
+        # uncompressed: the COG driver reads it once and compresses what it writes
         plain = write_geotiff(Path(tmp) / "plain.tif", array, geo, nodata=nodata,
-                              description=description)
+                              description=description, compress=None)
         cog = Path(tmp) / final.name
         copy(plain, cog, driver="COG", blocksize=COG_BLOCK, compress="DEFLATE",
              predictor="YES", overviews="AUTO", overview_resampling=overview_resampling.upper(),

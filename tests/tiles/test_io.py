@@ -112,6 +112,14 @@ def test_write_geotiff_float_without_georef(tmp_path):
     assert read_image(out).geo.is_empty
 
 
+def test_write_geotiff_uncompressed_on_request(tmp_path, geotiff, border_mask):
+    geo = read_image(geotiff).geo
+    out = write_geotiff(tmp_path / "mask.tif", border_mask, geo, nodata=255, compress=None)
+    with rasterio.open(out) as ds:
+        assert ds.compression is None and ds.crs == CRS.from_user_input(geo.crs) and ds.nodata == 255
+        np.testing.assert_array_equal(ds.read(1), border_mask.astype(np.uint8))
+
+
 def test_write_geotiff_from_a_zarr_array_in_strips(tmp_path):
     data = np.random.default_rng(3).random((600, 70), dtype=np.float32)  # three 256-row strips
     source = zarr.create_array(str(tmp_path / "score.zarr"), shape=data.shape, chunks=(100, 70), dtype="float32")
