@@ -215,12 +215,17 @@ def _fmt_region(region: tuple[slice, ...]) -> str:
 
 
 def update_attrs(path: str | os.PathLike, updates: dict[str, Any]) -> None:
-    """Update the root attributes of a finished store (``updates`` through
-    :func:`jsonable`) and consolidate its metadata again."""
+    """Update the root attributes of a store (``updates`` through
+    :func:`jsonable`) in one metadata write.  The consolidated metadata of a
+    finished store lives in the same root document and holds only the
+    children's metadata, which this leaves alone: it is kept as it is, and
+    made only for a store that has none."""
     import zarr
 
-    zarr.open_group(store=str(path), mode="r+").update_attributes(jsonable(updates))  # one metadata write
-    _consolidate(Path(path))
+    group = zarr.open_group(store=str(path), mode="r+", zarr_format=3)
+    group.update_attributes(jsonable(updates))
+    if group.metadata.consolidated_metadata is None:
+        _consolidate(Path(path))
 
 
 def open_result_store(path: str | os.PathLike):

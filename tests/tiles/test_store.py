@@ -20,6 +20,7 @@ from rsmb.tiles import (
     finalize_result_store,
     jsonable,
     open_result_store,
+    update_attrs,
     write_array,
     write_spatial_coords,
 )
@@ -95,6 +96,27 @@ def test_xarray_opens_with_dim_names(out, arrays):
     assert ds.sizes["y"] == H and ds.sizes["axis"] == D
     np.testing.assert_array_equal(ds["change_mask"].values, arrays["change_mask"])
     assert ds.attrs["run"] == 1
+
+
+def test_update_attrs_keeps_the_consolidated_metadata(out, arrays):
+    """A finished store's root attributes change in one write; its
+    consolidated metadata (the children's) stays as it was and xarray opens
+    the store with the new attributes; a store without consolidated metadata
+    gets it."""
+    _write_store(out, arrays)
+    root = json.loads((out / "zarr.json").read_text())
+    update_attrs(out, {"summary": {"output": Path("moved.zarr")}, "run": 2})
+    after = json.loads((out / "zarr.json").read_text())
+    assert after["consolidated_metadata"] == root["consolidated_metadata"]
+    assert after["attributes"] == {**root["attributes"], "summary": {"output": "moved.zarr"}, "run": 2}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert xr.open_zarr(out).attrs["run"] == 2
+    plain = out.with_name("plain.zarr")
+    group = create_result_store(plain, _specs(), {"run": 1}, overwrite=False)
+    update_attrs(group.store.root, {"run": 3})
+    consolidated = json.loads((Path(group.store.root) / "zarr.json").read_text())["consolidated_metadata"]
+    assert consolidated is not None and set(consolidated["metadata"]) == set(_specs())
 
 
 def test_existing_output_without_overwrite_raises(out, arrays):
