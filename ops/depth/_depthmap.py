@@ -478,15 +478,6 @@ def _window_range(index, active, half):
 
 
 @numba.njit(nogil=True, cache=True)
-def _sample(ref, m, tx, ty, sc, x, y, cx, cy):
-    """The reference at the point a pose (rotation map ``m``, translations
-    ``tx``, ``ty`` px, scale ``sc``) carries capture pixel (x, y) to, in the
-    reference window's frame: bilinear; NaN outside it or on no-data."""
-    u, v = _point(m, tx, ty, sc, x, y, cx, cy)
-    return _bilinear(ref, u, v)
-
-
-@numba.njit(nogil=True, cache=True)
 def _point(m, tx, ty, sc, x, y, cx, cy):
     """The point (u, v) (column, row) of the reference window that a pose
     (rotation map ``m``, translations ``tx``, ``ty`` px, scale ``sc``)

@@ -34,12 +34,12 @@ import numba
 import numpy as np
 
 from .._camera import full_poses
-from ._depthmap import _geometry, _RowPoses, _sample, depth_map
+from ._depthmap import _geometry, _point, _point_on_row, _row_map, _RowPoses, depth_map
 from ._layers import depth_layers, sees_a_layer_elsewhere
 from .._oracle import _huber_loss, optimal_chi
 from ..registration._rowproblem import _centroid, _Solver
 from ..registration._rowsolve import MAX_ADD, MAX_OUTER, TOL, _solve_huber_nn
-from .._warp import _inverse_map
+from .._warp import _bilinear, _inverse_map
 
 __all__ = ["AlternateParams", "depth_step"]
 
@@ -240,14 +240,19 @@ class _DepthRow(NamedTuple):
     reference window, the poses (K, 6), each pixel's inverse depth (NaN: not
     wanted), the poses ordered by group (``order``; group ``n`` is
     ``order[starts[n]:starts[n + 1]]``: the same ty, s and rotations and
-    translations ``tx`` an integer number of pixels apart), the geometry and
-    the row (reference frame)."""
+    translations ``tx`` an integer number of pixels apart), the wanted pixels
+    ordered by inverse depth (``by_depth``; the pixels of ``depths[n]`` are
+    ``by_depth[depth_starts[n]:depth_starts[n + 1]]``), the geometry and the
+    row (reference frame)."""
 
     ref: np.ndarray
     poses6: np.ndarray
     q: np.ndarray
     order: np.ndarray
     starts: np.ndarray
+    depths: np.ndarray
+    by_depth: np.ndarray
+    depth_starts: np.ndarray
     focal: float
     cx: float
     cy: float
@@ -264,27 +269,34 @@ def _build_row_depth(ref, poses6, q, focal, cx, cy, y, dx, out):
 
     At inverse depth 1 a pose's sample at pixel ``j`` depends on ``x - tx``
     alone, so the poses of a group (:class:`_DepthRow`) share one row of
-    samples, shifted by their ``tx``; other depths are sampled pose by pose."""
+    samples, shifted by their ``tx``; other depths are sampled pose by pose,
+    each pose's map reduced to the row once per inverse depth the row holds."""
     poses6 = np.ascontiguousarray(poses6, np.float64)
     key = np.column_stack([poses6[:, 1:], poses6[:, 0] - np.floor(poses6[:, 0])])
     _, group = np.unique(key, axis=0, return_inverse=True)
     group = group.ravel()
     order = np.argsort(group, kind="stable")
     starts = np.searchsorted(group[order], np.arange(group.max() + 2 if len(group) else 1))
-    row = _DepthRow(ref, poses6, np.asarray(q, np.float64), order, starts, float(focal), float(cx), float(cy),
-                    float(y), float(dx))
+    q = np.asarray(q, np.float64)
+    wanted = np.flatnonzero(np.isfinite(q))
+    depths, which = np.unique(q[wanted], return_inverse=True)
+    by_depth = wanted[np.argsort(which.ravel(), kind="stable")]
+    depth_starts = np.searchsorted(q[by_depth], depths, side="left")
+    depth_starts = np.append(depth_starts, len(by_depth)).astype(np.int64)
+    row = _DepthRow(ref, poses6, q, order, starts, depths, by_depth, depth_starts, float(focal), float(cx),
+                    float(cy), float(y), float(dx))
     return _columns_at_depth(row, out)
 
 
 @numba.njit(nogil=True, cache=True)
 def _columns_at_depth(row, out):
     """:func:`_build_row_depth`'s kernel."""
-    k_count, width = out.shape
+    width = out.shape[1]
     q, poses6 = row.q, row.poses6
-    valid = np.ones(width, np.uint8)
-    for j in range(width):
-        if np.isnan(q[j]):
-            valid[j] = 0
+    valid = np.zeros(width, np.uint8)
+    out[:] = 0.0
+    for j in row.by_depth:
+        valid[j] = 1
     for g in range(row.starts.shape[0] - 1):
         a, b = row.starts[g], row.starts[g + 1]
         m, _, ty, sc = _inverse_map(poses6[row.order[a]], row.focal, row.cx, row.cy)
@@ -295,22 +307,25 @@ def _columns_at_depth(row, out):
         shared = b - a > 1
         base = np.empty(width + int(hi - lo) if shared else 0)
         for t in range(base.shape[0]):  # x - tx for the group's poses, from the largest tx
-            base[t] = _sample(row.ref, m, 0.0, ty, sc, t + row.dx - hi, row.y, row.cx, row.cy)
+            u, v = _point(m, 0.0, ty, sc, t + row.dx - hi, row.y, row.cx, row.cy)
+            base[t] = _bilinear(row.ref, u, v)
         for n in range(a, b):
             k = row.order[n]
             tx = poses6[k, 0]
             off = int(np.rint(hi - tx))
-            for j in range(width):
-                if valid[j] == 0 and np.isnan(q[j]):
-                    out[k, j] = 0.0
-                    continue
-                if shared and q[j] == 1.0:
-                    v = base[off + j]
-                else:
-                    v = _sample(row.ref, m, tx * q[j], ty * q[j], 1.0 + s * q[j], j + row.dx, row.y, row.cx, row.cy)
-                if np.isnan(v):
-                    valid[j] = 0
-                    out[k, j] = 0.0
-                else:
-                    out[k, j] = v
+            for d in range(row.depths.shape[0]):
+                qd = row.depths[d]
+                on_row = _row_map(m, tx * qd, ty * qd, 1.0 + s * qd, row.y, row.cx, row.cy)
+                for p in range(row.depth_starts[d], row.depth_starts[d + 1]):
+                    j = row.by_depth[p]
+                    if shared and qd == 1.0:
+                        v = base[off + j]
+                    else:
+                        u, v = _point_on_row(on_row, j + row.dx)
+                        v = _bilinear(row.ref, u, v)
+                    if np.isnan(v):
+                        valid[j] = 0
+                        out[k, j] = 0.0
+                    else:
+                        out[k, j] = v
     return valid

@@ -10,8 +10,9 @@ import pytest
 from scipy import ndimage
 
 from rsmb import ops
-from rsmb.ops.depth._depthsolve import _build_row_depth, _columns_at_depth, _DepthRow, _resolve_rows
-from rsmb.ops._warp import _build_row
+from rsmb.ops.depth._depthmap import _point
+from rsmb.ops.depth._depthsolve import _build_row_depth, _resolve_rows
+from rsmb.ops._warp import _bilinear, _build_row, _inverse_map
 
 
 def _texture(shape, seed):
@@ -62,9 +63,14 @@ def test_columns_shared_by_shifts_equal_columns_sampled_pose_by_pose():
     q[::9] = np.nan
     shared = np.zeros((40, 80), np.float32)
     ok = _build_row_depth(ref, poses6, q, 100.0, 60.0, 32.0, 30.0, 14.0, shared)
-    alone = np.zeros((40, 80), np.float32)
-    row = _DepthRow(ref, poses6, q, np.arange(40), np.arange(41), 100.0, 60.0, 32.0, 30.0, 14.0)
-    ok_alone = _columns_at_depth(row, alone)
+    alone = np.zeros((40, 80), np.float32)  # pixel by pose, each through the whole map (_point)
+    ok_alone = np.isfinite(q).astype(np.uint8)
+    for k, pose in enumerate(poses6):
+        m, tx, ty, sc = _inverse_map(pose, 100.0, 60.0, 32.0)
+        for j in np.flatnonzero(np.isfinite(q)):
+            v = _bilinear(ref, *_point(m, tx * q[j], ty * q[j], 1.0 + (sc - 1.0) * q[j], j + 14.0, 30.0, 60.0, 32.0))
+            ok_alone[j] &= bool(np.isfinite(v))
+            alone[k, j] = v if np.isfinite(v) else 0.0
     np.testing.assert_array_equal(ok, ok_alone)
     np.testing.assert_allclose(shared, alone, atol=1e-6)
     assert not shared[:, ::9].any() and ok[::9].sum() == 0
