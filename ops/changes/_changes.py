@@ -31,6 +31,7 @@ kept too (this recovers the blurred borders of changed objects), then connected
 components smaller than ``min_area`` pixels are removed.
 """
 
+import math
 import numbers
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -172,22 +173,41 @@ def _histograms(residual, score, valid, residual_edges, score_edges, residual_co
     """:func:`score_histogram`'s counts in one pass, as ``np.histogram`` counts
     them: ``|residual|`` clipped to the last residual edge, the score's positive
     values clipped to the last score edge; bins closed on the left, the last
-    one on both sides; NaN is not counted."""
+    one on both sides; NaN is not counted.  A value's bin is found from where
+    the edges' spacing puts it (geometric after the first residual edge, even
+    for the score), then checked against the edges themselves."""
     height, width = valid.shape
     r_last, s_last = residual_edges[-1], score_edges[-1]
+    r_first = residual_edges[1]
+    r_per_log = (residual_edges.shape[0] - 2) / math.log(r_last / r_first)
+    s_per_unit = (score_edges.shape[0] - 1) / (s_last - score_edges[0])
     for i in range(height):
         for j in range(width):
             if not valid[i, j]:
                 continue
             r = abs(np.float64(residual[i, j]))
             if r == r:
-                k = np.searchsorted(residual_edges, min(r, r_last), side="right") - 1
-                residual_counts[min(k, residual_counts.shape[0] - 1)] += 1
+                r = min(r, r_last)
+                guess = 0 if r < r_first else 1 + int(math.log(r / r_first) * r_per_log)
+                residual_counts[_bin(residual_edges, r, guess)] += 1
             c = np.float64(score[i, j])
             if c > 0:
                 c = min(c, s_last)
-                k = np.searchsorted(score_edges, c, side="right") - 1
-                score_counts[min(k, score_counts.shape[0] - 1)] += 1
+                score_counts[_bin(score_edges, c, int((c - score_edges[0]) * s_per_unit))] += 1
+
+
+@numba.njit(nogil=True, cache=True)
+def _bin(edges, value, guess):
+    """The bin of ``value`` (within the edges) among ``edges``: the last edge
+    at most ``value`` (``np.searchsorted(edges, value, 'right') - 1``), the
+    last bin closed on both sides; searched from ``guess``."""
+    last = edges.shape[0] - 2
+    k = min(max(guess, 0), last)
+    while k > 0 and value < edges[k]:
+        k -= 1
+    while k < last and value >= edges[k + 1]:
+        k += 1
+    return k
 
 
 def change_threshold(histogram, *, params=ChangeParams()):

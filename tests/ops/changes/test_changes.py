@@ -18,7 +18,7 @@ from rsmb.ops import (
     optimal_chi,
     score_histogram,
 )
-from rsmb.ops.changes._changes import _RESIDUAL_EDGES
+from rsmb.ops.changes._changes import _RESIDUAL_EDGES, _SCORE_EDGES
 
 SHAPE = (48, 64)
 BIN_RATIO = float(_RESIDUAL_EDGES[-1] / _RESIDUAL_EDGES[-2])  # log bins: ~1.5 % wide
@@ -201,6 +201,24 @@ def test_noise_threshold_of_summed_tiles_is_that_of_the_whole():
     np.testing.assert_array_equal(total.residual, whole.residual)
     np.testing.assert_array_equal(total.score, whole.score)
     assert change_threshold(total) == change_threshold(whole)
+
+
+def test_histograms_are_numpys_at_every_edge_and_clip_level():
+    """The bins found from the edges' spacing are np.histogram's, for values
+    exactly on every edge, beyond the last one (clipped to it), NaN and off
+    the valid pixels (not counted), over ten decades of residual."""
+    rng = np.random.default_rng(11)
+    residual = (rng.standard_normal((64, 64)) * 10.0 ** rng.uniform(-8, 1, (64, 64))).astype(np.float32)
+    score = np.abs(rng.standard_normal((64, 64)) * 2.5).astype(np.float32)
+    residual.flat[:len(_RESIDUAL_EDGES)] = _RESIDUAL_EDGES
+    score.flat[:len(_SCORE_EDGES)] = _SCORE_EDGES
+    residual.flat[::97], score.flat[::89] = np.nan, np.nan
+    valid = rng.random((64, 64)) < 0.9
+    hist = score_histogram(residual, score, valid)
+    r = np.abs(residual[valid].astype(np.float64))
+    s = score[valid].astype(np.float64)
+    np.testing.assert_array_equal(hist.residual, np.histogram(np.minimum(r[np.isfinite(r)], 4.0), _RESIDUAL_EDGES)[0])
+    np.testing.assert_array_equal(hist.score, np.histogram(np.minimum(s[s > 0], 2.0), _SCORE_EDGES)[0])
 
 
 def test_noise_threshold_never_below_floor():
