@@ -42,9 +42,10 @@ from .changes._metrics import ConfusionCounts, confusion, trajectory_rmse
 from ._oracle import ExactRowSolution, huber_objective, optimal_chi, row_objective, solve_row_exact
 from ._posespace import PoseSpace
 from .registration._params import RegistrationParams, auto_step
-from .registration._register import Registration, register
+from .registration._register import Registration, find_start, register
 from .registration._reground import reground
 from .registration._rowsolve import solve_row_fast
+from .registration._start import StartPose
 from .synthetic._scene import aerial_scene, paste_changes
 from .registration._slow import SlowPath, estimate_slow
 from .synthetic._synth import MOTIONS, SyntheticPair, motion_path, synthesize_pair
@@ -83,6 +84,8 @@ __all__ = [
     "depth_step",
     "Registration",
     "register",
+    "find_start",
+    "StartPose",
     "reground",
     "SlowPath",
     "estimate_slow",

@@ -75,7 +75,7 @@ class MethodResult:
 
 
 def run_method(reference, capture, *, camera, params=None, changes=None, intensity=None, reference_origin_yx=(0, 0),
-               distorted_origin_yx=(0, 0), prior=None, slow="auto"):
+               distorted_origin_yx=(0, 0), prior=None, slow="auto", start=None):
     """The method on one window: register, re-ground, depth, change score.
 
     Parameters
@@ -95,7 +95,7 @@ def run_method(reference, capture, *, camera, params=None, changes=None, intensi
         None: the windows are on one scale already and nothing is clipped.
     reference_origin_yx, distorted_origin_yx : tuple of int
         Where the windows start in the whole image (pixels).
-    prior, slow :
+    prior, slow, start :
         As :func:`register`.
 
     Returns
@@ -112,7 +112,7 @@ def run_method(reference, capture, *, camera, params=None, changes=None, intensi
     valid = np.isfinite(distorted)
     dist = np.nan_to_num(distorted)  # NaN: no-data
     result = register(ref, dist, camera=camera, params=params, distorted_valid=valid, prior=prior, slow=slow,
-                      **origins)
+                      start=start, **origins)
     with clock.stage("score"):
         threshold = _window_threshold(result, dist, changes)
     result = reground(result, ref, dist, camera=camera, params=params, threshold=threshold,

@@ -17,15 +17,16 @@ from .._camera import POSE_AXES, Camera
 from .._errors import ParameterError
 from ._gain import GAIN_SLOPE_RESOLVE, _column_gain_guess, _fold_gain, _gain_slope
 from .._oracle import optimal_chi
-from .._timing import StageClock
+from .._timing import UNTIMED, StageClock
 from ._params import RegistrationParams
 from ._propagate import _Propagation, _shift_weights
 from ._rowproblem import _centroid, _RowProblem, _shift_margin, _Solver
 from ._rowsolve import _synthesize
 from ._slow import estimate_slow, slow_from_trajectory
-from ._start import _adapted_half_width, _choose_start, _coarse_search, _row_energy, _start, _start_row
+from ._start import (StartPose, _adapted_half_width, _choose_start, _coarse_search, _found_start, _neighbourhood,
+                     _row_energy, _search_band, _shared_start, _start, _start_row)
 
-__all__ = ["Registration", "register"]
+__all__ = ["Registration", "find_start", "register"]
 
 
 @dataclass
@@ -64,7 +65,8 @@ class Registration:
         the slow part, ``start`` the start search, ``rows`` the row solves,
         ``reanchor`` rows solved again in a block where the path jumped,
         ``gain_slope`` the gain-slope fits and the rounds of rows solved again
-        after them; :func:`reground` adds ``reground``), and counts.
+        after them; :func:`reground` adds ``reground``), and counts
+        (``shared_start``: 1 when the rows started from the given ``start``).
     """
 
     registered: np.ndarray
@@ -87,7 +89,8 @@ class Registration:
 
 
 def register(reference, distorted, *, camera=None, params=None, reference_origin_yx=(0, 0),
-             distorted_origin_yx=(0, 0), reference_valid=None, distorted_valid=None, prior=None, slow="auto"):
+             distorted_origin_yx=(0, 0), reference_valid=None, distorted_valid=None, prior=None, slow="auto",
+             start=None):
     """Register a distorted capture against a reference, row by row (eq. 13).
 
     Parameters
@@ -115,6 +118,13 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
         :class:`SlowPath` (rows of ``distorted``) found on a wider view, such
         as the whole image at a coarser scale, is used as it is; None: no slow
         part.  Ignored with a ``prior``, which carries its own.
+    start : StartPose, optional
+        A start found on a window holding the same rows of the capture
+        (:func:`find_start` on another tile of the band): the start block is
+        solved around its pose instead of searched for, and searched for
+        where that is unsound (no informative row near the start's row, or a
+        pose more than two lattice steps from it).  Rolling shutter only; ignored
+        with a ``prior``.
 
     Returns
     -------
@@ -122,14 +132,7 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
     """
     camera = camera or Camera.for_shape(distorted.shape)
     params = (params or RegistrationParams()).resolved(camera)
-    ref = np.array(reference, dtype=np.float32)
-    if reference_valid is not None:
-        ref[~np.asarray(reference_valid, bool)] = np.nan
-    dist = np.asarray(distorted, dtype=np.float32)
-    dvalid = np.isfinite(dist)  # NaN: no-data, as False in distorted_valid
-    if distorted_valid is not None:
-        dvalid &= np.asarray(distorted_valid, bool)
-    dist = np.where(dvalid, dist, np.float32(0.0))
+    ref, dist, dvalid = _windows(reference, distorted, reference_valid, distorted_valid)
     timings = {"slow_s": 0.0, "start_s": 0.0, "rows_s": 0.0, "reanchor_s": 0.0, "gain_slope_s": 0.0}
     clock = StageClock(timings)
     if prior is not None:
@@ -139,17 +142,10 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
             raise ParameterError(f"prior: expected shape {expected}, got {prior.shape}")
         slow = slow_from_trajectory(prior, params.trajectory_axes)
         prior = prior[:, :len(params.axes)]
-    elif not params.slow_axes:
-        slow = None
-    elif isinstance(slow, str):
-        if slow != "auto":
-            raise ParameterError(f"slow: expected 'auto', a SlowPath or None, got {slow!r}")
-        with clock.stage("slow"):
-            slow = estimate_slow(ref, dist, dvalid, camera=camera, reference_origin_yx=reference_origin_yx,
-                                 distorted_origin_yx=distorted_origin_yx, axes=params.slow_axes,
-                                 limit=2.0 * params.slow_search)
-    elif slow is not None and slow.rotation.shape[0] != dist.shape[0]:
-        raise ParameterError(f"slow: expected a path of {dist.shape[0]} rows, got {slow.rotation.shape[0]}")
+    else:
+        slow = _slow_part(slow, params, ref, dist, dvalid, camera, reference_origin_yx, distorted_origin_yx, clock)
+    if start is not None and not isinstance(start, StartPose):
+        raise ParameterError(f"start: expected a StartPose or None, got {type(start).__name__}")
     args = (camera, params, reference_origin_yx, distorted_origin_yx, prior)
     # eq. 13 has one gain per row: a gain changing along the rows by more than a
     # few per cent biases the poses, so a slope fitted to the registration is
@@ -158,9 +154,11 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
     factor, scaled = None, dist
     for attempt in range(3):
         rounds = clock if attempt == 0 else StageClock()
-        out, delta = _solve_rows(ref, scaled, dvalid, *args, slow, rounds)
+        out, delta = _solve_rows(ref, scaled, dvalid, *args, slow, rounds, start)
         if attempt:
             timings["gain_slope_s"] += sum(rounds.seconds.values())
+        else:
+            timings["shared_start"] = int(start is not None and out.shared_start)
         with clock.stage("gain_slope"):
             more = _gain_slope(out, scaled, delta) if params.gain_slope else None
         if more is None:
@@ -186,6 +184,83 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
                         params.trajectory_axes, timings, out.weights, factor, slow)
 
 
+def find_start(reference, distorted, *, camera=None, params=None, reference_origin_yx=(0, 0),
+               distorted_origin_yx=(0, 0), reference_valid=None, distorted_valid=None, slow="auto"):
+    """The start of :func:`register`'s trajectory on these windows, alone: the
+    correlation search and the block solve that picks among its candidates,
+    for the windows that hold the same rows (``register(..., start=)``).
+
+    Parameters are those of :func:`register`.
+
+    Returns
+    -------
+    StartPose or None
+        None when the window has no informative row or the block solve found
+        no weight: every window then searches alone.
+    """
+    camera = camera or Camera.for_shape(distorted.shape)
+    params = (params or RegistrationParams()).resolved(camera)
+    ref, dist, dvalid = _windows(reference, distorted, reference_valid, distorted_valid)
+    slow = _slow_part(slow, params, ref, dist, dvalid, camera, reference_origin_yx, distorted_origin_yx, None)
+    solver = _solver(ref, dist, dvalid, camera, params, reference_origin_yx, distorted_origin_yx, None, slow, UNTIMED)
+    informative = _informative(dist, dvalid, params)
+    if not informative.any():
+        return None
+    mid = _start_row(informative, dist.shape[0])
+    candidates = _coarse_search(solver.problem, params, _search_band(mid, dist.shape[0]))
+    center, cost = _found_start(solver, candidates, informative, mid)
+    if not np.isfinite(cost):
+        return None
+    return StartPose(int(mid + distorted_origin_yx[0]), tuple(float(v) for v in center), tuple(params.axes))
+
+
+def _windows(reference, distorted, reference_valid, distorted_valid):
+    """The windows as the solves take them: float32, the reference NaN where
+    not valid, the capture 0 there, and the capture's valid mask."""
+    ref = np.array(reference, dtype=np.float32)
+    if reference_valid is not None:
+        ref[~np.asarray(reference_valid, bool)] = np.nan
+    dist = np.asarray(distorted, dtype=np.float32)
+    dvalid = np.isfinite(dist)  # NaN: no-data, as False in distorted_valid
+    if distorted_valid is not None:
+        dvalid &= np.asarray(distorted_valid, bool)
+    return ref, np.where(dvalid, dist, np.float32(0.0)), dvalid
+
+
+def _slow_part(slow, params, ref, dist, dvalid, camera, reference_origin_yx, distorted_origin_yx, clock):
+    """The slow part :func:`register` uses (its ``slow`` argument checked,
+    "auto" estimated on the windows, timed as ``slow`` on ``clock``)."""
+    if not params.slow_axes:
+        return None
+    if isinstance(slow, str):
+        if slow != "auto":
+            raise ParameterError(f"slow: expected 'auto', a SlowPath or None, got {slow!r}")
+        with (clock or StageClock()).stage("slow"):
+            return estimate_slow(ref, dist, dvalid, camera=camera, reference_origin_yx=reference_origin_yx,
+                                 distorted_origin_yx=distorted_origin_yx, axes=params.slow_axes,
+                                 limit=2.0 * params.slow_search)
+    if slow is not None and slow.rotation.shape[0] != dist.shape[0]:
+        raise ParameterError(f"slow: expected a path of {dist.shape[0]} rows, got {slow.rotation.shape[0]}")
+    return slow
+
+
+def _solver(ref, dist, dvalid, camera, params, reference_origin_yx, distorted_origin_yx, prior, slow, clock):
+    """The row problem of the windows and its solver."""
+    row_pad = int(np.ceil(3 * max([params.half_width[d] for d, a in enumerate(params.axes) if a == "ty"] + [0])))
+    problem = _RowProblem(ref, dist, dvalid, camera, reference_origin_yx, distorted_origin_yx, params.axes,
+                          params.step, _shift_margin(params, prior), row_pad + 4, slow)
+    return _Solver(problem, params, clock)
+
+
+def _informative(dist, dvalid, params):
+    """Rows whose texture (mean absolute horizontal gradient) reaches
+    ``params.homogeneous`` times the median row's: the rows trusted for the path."""
+    energy = _row_energy(dist, dvalid)
+    if not (energy > 0).any():
+        return energy > 0
+    return energy >= params.homogeneous * np.median(energy[energy > 0])
+
+
 def _slow_columns(slow, axes, height):
     """The slow axes' columns (H, len(axes)) of the trajectory (zero without a slow part)."""
     out = np.zeros((height, len(axes)))
@@ -196,30 +271,27 @@ def _slow_columns(slow, axes, height):
     return out
 
 
-def _solve_rows(ref, dist, dvalid, camera, params, reference_origin_yx, distorted_origin_yx, prior, slow, clock):
-    """Every row of ``dist`` against ``ref`` (eq. 13): outputs and the Huber
-    delta; CPU-seconds per stage into ``clock`` (a :class:`StageClock`)."""
-    row_pad = int(np.ceil(3 * max([params.half_width[d] for d, a in enumerate(params.axes) if a == "ty"] + [0])))
-    problem = _RowProblem(ref, dist, dvalid, camera, reference_origin_yx, distorted_origin_yx, params.axes,
-                          params.step, _shift_margin(params, prior), row_pad + 4, slow)
-    solver = _Solver(problem, params, clock)
+def _solve_rows(ref, dist, dvalid, camera, params, reference_origin_yx, distorted_origin_yx, prior, slow, clock,
+                start=None):
+    """Every row of ``dist`` against ``ref`` (eq. 13; rolling shutter: from
+    ``start``, a :class:`StartPose`, where it is sound): outputs and the
+    Huber delta; CPU-seconds per stage into ``clock`` (a :class:`StageClock`)."""
+    solver = _solver(ref, dist, dvalid, camera, params, reference_origin_yx, distorted_origin_yx, prior, slow, clock)
     height, width = dist.shape
+    out = _Outputs(height, width, len(params.axes))
     with clock.stage("start"):
-        energy = _row_energy(dist, dvalid)
-        informative = energy >= params.homogeneous * np.median(energy[energy > 0]) if (energy > 0).any() else energy > 0
-        out = _Outputs(height, width, len(params.axes))
+        informative = _informative(dist, dvalid, params)
         mid = _start_row(informative, height)
-        half_band = int(max(16, min(48, height // 6)))
-        band = np.arange(max(0, mid - half_band), min(height, mid + half_band))
-        candidates = _coarse_search(problem, params, band) if prior is None else None
     if prior is not None:
         with clock.stage("rows"):
             _register_prior(solver, prior, informative, out)
     elif params.shutter == "global":
+        with clock.stage("start"):
+            candidates = _coarse_search(solver.problem, params, _search_band(mid, height))
         with clock.stage("rows"):
             _register_global(solver, candidates, informative, out)
     else:
-        _register_rolling(solver, candidates, informative, mid, out)
+        _register_rolling(solver, informative, mid, out, start, distorted_origin_yx[0])
     return out, solver.delta
 
 
@@ -232,6 +304,7 @@ class _Outputs:
         self.row_gain = np.zeros(height)
         self.row_state = np.zeros(height, dtype=np.uint8)
         self.weights = {}  # row -> (poses, weights) of its final solve, nonzero weights only
+        self.shared_start = False  # the rows started from a given StartPose
 
     def no_evidence_where_failed(self):
         """Rows in state 3 (no solution that meets the optimality conditions)
@@ -260,10 +333,18 @@ class _Outputs:
         self.row_gain[row] = w.sum()
 
 
-def _register_rolling(solver, candidates, informative, mid, out):
-    """Start near the middle, propagate outwards row by row."""
+def _register_rolling(solver, informative, mid, out, start, row0):
+    """Start near the middle (around ``start``, a :class:`StartPose`, when it
+    is sound: :func:`_shared_start`; ``row0``: the window's first row in the
+    image), propagate outwards row by row."""
     with solver.clock.stage("start"):
-        space, center = _start(solver, candidates, informative, mid)
+        shared = None if start is None else _shared_start(solver, start, informative, row0)
+        if shared is None:
+            candidates = _coarse_search(solver.problem, solver.params, _search_band(mid, len(informative)))
+            space, center = _start(solver, candidates, informative, mid)
+        else:
+            mid, center = shared
+            space = _neighbourhood(solver, mid, center)
     with solver.clock.stage("rows"):
         run = _Propagation(solver, space, out)
         run.from_row(mid, center, informative)
@@ -271,6 +352,7 @@ def _register_rolling(solver, candidates, informative, mid, out):
     offsets = run.space.offsets()
     for i, (lattice, w) in run.weights.items():
         out.keep_weights(i, run.space.lattice_poses(np.asarray(lattice)[None, :] + offsets), w)
+    out.shared_start = shared is not None
 
 
 def _register_global(solver, candidates, informative, out):

@@ -1,16 +1,59 @@
 """Where the trajectory starts: an informative block of rows near the middle of
 the capture, candidate poses from a cheap correlation search over a wide pose
-range, and the candidate whose joint block solve of eq. 13 costs least."""
+range, and the candidate whose joint block solve of eq. 13 costs least.
+
+Camera poses are global: windows holding the same rows of one capture (the
+tiles of one band) share their start.  One window searches
+(:class:`StartPose`); the others refine their own start block around its pose
+(:func:`_shared_start`) and search alone only where that is unsound."""
+
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from .._camera import full_poses
+from .._errors import ParameterError
 from .._posespace import PoseSpace
 from ._rowproblem import _centroid, _spread
 from .._warp import _warp_into
 
-__all__ = []
+__all__ = ["StartPose"]
+
+#: A shared start is used by a window whose informative row nearest the start's
+#: row lies at most this many rows from it (the half-height of the band the
+#: correlation search covers); farther away the window searches alone.
+SHARED_ROWS = 48
+
+#: A window's start block solved around a shared start keeps it when its
+#: centroid lies within this many lattice steps of the start's pose per axis.
+SHARED_STEPS = 2
+
+
+@dataclass(frozen=True)
+class StartPose:
+    """The start of a trajectory found on one window (:func:`find_start`),
+    for the windows holding the same rows of the capture.
+
+    Attributes
+    ----------
+    row : int
+        Row of the whole image whose start block was solved.
+    pose : tuple of float
+        The block's centroid over ``axes``, global pose coordinates (units of
+        :data:`ops.AXIS_UNITS`).
+    axes : tuple of str
+    """
+
+    row: int
+    pose: tuple
+    axes: tuple
+
+
+def _search_band(mid, height):
+    """Rows the correlation search covers around the start row ``mid``."""
+    half = int(max(16, min(SHARED_ROWS, height // 6)))
+    return np.arange(max(0, mid - half), min(height, mid + half))
 
 
 def _row_energy(distorted, valid):
@@ -210,7 +253,13 @@ def _choose_start(solver, start, rows):
     """The start pose among the correlation candidates whose block solve of
     eq. 13 costs least: correlation proposes, the model decides (periodic
     textures such as ploughed fields give several correlation peaks).
-    ``start`` is (candidates, uncertainty per axis)."""
+    ``start`` is (candidates, uncertainty per axis).  Returns the pose and
+    the blur extent per axis."""
+    return _choose(solver, start, rows)[:2]
+
+
+def _choose(solver, start, rows):
+    """:func:`_choose_start`, returning what :func:`_refine` does."""
     candidates, uncertainty = start
     # where rz steps move the block's pixels by a pixel or less, candidates
     # compete on a lattice twice as coarse in rz (half the poses of the widest
@@ -227,7 +276,7 @@ def _choose_start(solver, start, rows):
         known = np.where(coarsened, np.asarray(solver.params.step) * coarse, uncertainty)
         # from the winner's weights: its coarse lattice lies on the full one
         best = _refine(solver, best[0], rows, known, 1, None, warm=best[3])
-    return best[0], best[1]
+    return best
 
 
 def _adapted_half_width(space, spread):
@@ -244,6 +293,52 @@ def _start(solver, candidates, informative, mid):
     params = solver.params
     block = _block_rows(informative, mid, params.block_rows, len(informative))
     center, _ = _choose_start(solver, candidates, block)
+    return _neighbourhood(solver, mid, center), center
+
+
+def _found_start(solver, candidates, informative, mid):
+    """The start block's pose at ``mid`` and its cost (:func:`_choose`)."""
+    block = _block_rows(informative, mid, solver.params.block_rows, len(informative))
+    center, _, cost, _ = _choose(solver, candidates, block)
+    return center, cost
+
+
+def _shared_start(solver, start, informative, row0):
+    """This window's start from a :class:`StartPose` found on another window
+    holding the same rows (``row0``: this window's first row in the whole
+    image): its start block at the informative row nearest the start's row,
+    solved around the start's pose (known to a lattice step per axis: one
+    pixel of motion at the image's farthest pixel with automatic steps; the
+    block grid is wider still).  Returns (start row, pose), or None where
+    sharing is unsound and the window must search alone: no informative row
+    within :data:`SHARED_ROWS` rows of the start's, a block solve without
+    weight, or a centroid more than :data:`SHARED_STEPS` steps from the
+    start's pose on some axis (the window's pose is elsewhere: parallax, or
+    another motion; a narrow window trades rz for ty along a flat valley of
+    eq. 13 by a step or so)."""
+    params = solver.params
+    if tuple(start.axes) != tuple(params.axes):
+        raise ParameterError(f"start: expected a pose over axes {tuple(params.axes)}, got {tuple(start.axes)}")
+    rows = np.nonzero(informative)[0]
+    if rows.size == 0:
+        return None
+    local = int(start.row) - int(row0)
+    mid = int(rows[np.argmin(np.abs(rows - local))])
+    if abs(mid - local) > SHARED_ROWS:
+        return None
+    pose = np.asarray(start.pose, dtype=np.float64)
+    step = np.asarray(params.step, dtype=np.float64)
+    block = _block_rows(informative, mid, params.block_rows, len(informative))
+    center, _, cost, _ = _refine(solver, pose, block, step, 2, None)
+    if not np.isfinite(cost) or (np.abs(center - pose) > SHARED_STEPS * step).any():
+        return None
+    return mid, center
+
+
+def _neighbourhood(solver, mid, center):
+    """The row neighbourhood: the parameters' space, widened to the blur
+    extent of the start row ``mid`` solved around ``center`` (``adapt``)."""
+    params = solver.params
     space = params.space
     if params.adapt:
         wide = space.widened(tuple(np.asarray(space.half_width) + np.asarray(space.step)))
@@ -251,4 +346,4 @@ def _start(solver, candidates, informative, mid):
         c = _centroid(poses, w)
         if c is not None:
             space = space.widened(_adapted_half_width(space, _spread(poses, w, c)))
-    return space, center
+    return space

@@ -11,8 +11,9 @@ whatever the tile, so small tiles would pay them many times over.
    written; the configuration, summary and defaults live in ``_plan.py``);
 2. :func:`_ingest`: both images into the store, chunked by tile, one task per
    block (a tile task reads its core and halo: at most nine chunks);
-3. :func:`_register_tiles`: every tile (resumable: finished tiles are marked in
-   the store);
+3. :func:`_register_tiles`: one start search per band of tiles
+   (:func:`_band_starts`), then every tile (resumable: finished tiles are
+   marked in the store);
 4. :func:`_fuse_paths`: the per-row trajectories of tiles sharing rows fused,
    tiles whose path disagrees with their band's re-solved around the others';
 5. :func:`_change_masks`: one change threshold for the whole image from summed
@@ -93,8 +94,25 @@ def _ingest(runner, group, run, plan, timings):
     return dataclasses.replace(run, intensity=scale)
 
 
+def _band_starts(runner, run, plan, todo):
+    """Stage 3a: one start per band of tiles (a grid row: its tiles hold the
+    same capture rows, and camera poses are global) that has two tiles or
+    more and some to register, one task each (:func:`_tasks.start_task`).
+    Returns {tile row: StartPose or None}; none with a global shutter (its
+    tiles' start blocks span their rows)."""
+    if plan.params.shutter != "rolling":
+        return {}
+    bands = {}
+    for t in plan.grid:
+        bands.setdefault(t.index[0], []).append(t)
+    wanted = sorted({t.index[0] for t in todo if len(bands[t.index[0]]) > 1})
+    found = runner.map("start", _tasks.start_task, [(run, bands[ty], plan.camera, plan.params) for ty in wanted])
+    return dict(zip(wanted, found))
+
+
 def _register_tiles(runner, group, run, plan, resume, timings):
-    """Stage 3: every tile not yet registered, the longest first.  Returns the
+    """Stage 3: every tile not yet registered, the longest first, each band's
+    from the start the band shares (:func:`_band_starts`).  Returns the
     tiles' CPU-seconds per stage, summed (see :func:`_tasks.register_task`)."""
     t0 = time.perf_counter()
     done = _tile_done(group)
@@ -102,10 +120,13 @@ def _register_tiles(runner, group, run, plan, resume, timings):
     todo = sorted((t for t in grid if not done[t.index]), key=lambda t: -_expected_cost(t, plan.camera))
     if resume:
         log.info("resume: %d of %d tiles already registered", len(grid) - len(todo), len(grid))
+    starts = _band_starts(runner, run, plan, todo)
     stats = runner.map("register", _tasks.register_task,
-                       [(run, t, plan.camera, plan.params, plan.config.changes) for t in todo])
+                       [(run, t, plan.camera, plan.params, plan.config.changes, None, starts.get(t.index[0]))
+                        for t in todo])
     timings["register_s"] = time.perf_counter() - t0
     timings["tiles_registered"] = len(todo)
+    timings["tiles_shared_start"] = sum(s["shared_start"] for s in stats)
     if stats:
         for name in ("kernel_s", "read_s", "write_s"):
             timings[f"{name}_sum"] = float(sum(s[name] for s in stats))
@@ -205,6 +226,7 @@ def _cpu_stages(runner, tile_stages):
     out = {"ingest": cpu.get("ingest", 0.0),
            "overview_slow": cpu.get("overview", 0.0) + cpu.get("slow", 0.0) + tile_stages.get("slow", 0.0)}
     out.update({k: tile_stages.get(k, 0.0) for k in CPU_STAGES if k not in ("ingest", "overview_slow")})
+    out["start"] += cpu.get("start", 0.0)  # the bands' start tasks
     out["tile_resolve"] = cpu.get("re-solve", 0.0)
     out["change_masks"] = cpu.get("label", 0.0) + cpu.get("masks", 0.0)
     out["total"] = float(sum(out.values()))

@@ -173,9 +173,36 @@ def _slow_prior(store, tile, params):
     return ops.SlowPath(found[:, :2], found[:, 2])
 
 
-def register_task(store, tile, camera, params, changes, prior=None):
+#: Rows either side of a tile's middle row that :func:`start_task` compares.
+SEARCH_ROWS = 48
+
+
+def start_task(store, band, camera, params):
+    """Stage 1a: the start a band of tiles (``band``: the tiles of one grid
+    row, which hold the same capture rows) shares: :func:`ops.find_start` on
+    the windows of its most textured tile, the one whose middle rows (those
+    the start search covers) have the largest mean absolute difference
+    between neighbouring pixels of a row, no-data counted as flat.  The
+    choice looks at every tile of the band, done or not, so a ``--resume``
+    finds the same start.  Returns an :class:`ops.StartPose` or None."""
+    def texture(tile):
+        rows = tile.core[0]
+        mid = (rows.start + rows.stop) // 2
+        window = store.read("capture", slice(max(rows.start, mid - SEARCH_ROWS), min(rows.stop, mid + SEARCH_ROWS)),
+                            tile.core[1])
+        return float(np.nansum(np.abs(np.diff(window, axis=1)))) / window.size
+
+    tile = max(band, key=texture)  # the first of equals: the leftmost
+    capture = store.read("capture", *tile.core)
+    return ops.find_start(store.read("reference", *tile.window), np.nan_to_num(capture), camera=camera, params=params,
+                          reference_origin_yx=tile.window_origin, distorted_origin_yx=tile.core_origin,
+                          distorted_valid=np.isfinite(capture), slow=_slow_prior(store, tile, params))
+
+
+def register_task(store, tile, camera, params, changes, prior=None, band_start=None):
     """Stage 1: read one tile's windows, run the method on them
-    (:func:`ops.run_method`) and write its core outputs.  The tile's summary row
+    (:func:`ops.run_method`; ``band_start``: its band's start, from :func:`start_task`)
+    and write its core outputs.  The tile's summary row
     (histograms, gain, seconds, and 1 in its last column) is written last: it
     marks the tile complete for ``--resume``.
 
@@ -185,7 +212,8 @@ def register_task(store, tile, camera, params, changes, prior=None):
         Seconds spent (read, kernel, write: wall time), the tile's gain, and
         ``stages``: CPU-seconds of this task's thread per stage (``read``,
         ``slow``, ``start``, ``rows``, ``reanchor``, ``gain_slope``,
-        ``reground``, ``depth``, ``score``, ``write``).
+        ``reground``, ``depth``, ``score``, ``write``), and ``shared_start``:
+        1 when the tile's rows started from its band's start.
     """
     start = time.perf_counter()
     clock = StageClock()
@@ -197,7 +225,8 @@ def register_task(store, tile, camera, params, changes, prior=None):
     read = time.perf_counter() - start
     found = ops.run_method(reference, capture, camera=camera, params=params, changes=changes,
                            intensity=store.intensity, reference_origin_yx=tile.window_origin,
-                           distorted_origin_yx=tile.core_origin, prior=prior, slow=_slow_prior(store, tile, params))
+                           distorted_origin_yx=tile.core_origin, prior=prior, slow=_slow_prior(store, tile, params),
+                           start=band_start)
     result, hist = found.registration, found.histogram
     tile.check_core(found.registered)
     write_start = time.perf_counter()
@@ -214,7 +243,8 @@ def register_task(store, tile, camera, params, changes, prior=None):
             [hist.residual, hist.score, [result.gain, seconds, 1.0]])
     stages = {k[:-2]: v for k, v in {**found.timings, **clock.seconds}.items() if k.endswith("_s")}
     return {"index": tile.index, "seconds": seconds, "read_s": read, "write_s": time.perf_counter() - write_start,
-            "kernel_s": write_start - start - read, "pixels": h * w, "gain": result.gain, "stages": stages}
+            "kernel_s": write_start - start - read, "pixels": h * w, "gain": result.gain, "stages": stages,
+            "shared_start": int(result.timings.get("shared_start", 0))}
 
 
 def _layer_table(components, tile):

@@ -2,12 +2,15 @@
 coarse, from the solve before, from the winning candidate) they reach the
 optimum a cold start reaches, with fewer full solves."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from rsmb import ops
 from rsmb.ops.registration._rowproblem import _centroid, _RowProblem, _shift_margin, _Solver
-from rsmb.ops.registration._start import _block_space, _carried, _choose_start, _refine, _refine_start
+from rsmb.ops.registration._start import (SHARED_ROWS, _block_space, _carried, _choose_start, _refine, _refine_start,
+                                          _shared_start)
 
 
 def _solver(seed=3, size=192):
@@ -98,3 +101,109 @@ def test_the_chosen_start_is_the_cold_refinement_of_the_best_candidate():
     _, poses, w, _, _ = solver.solve(rows, _block_space(solver, known), best)
     np.testing.assert_allclose(center, _centroid(poses, w), atol=1e-4)
     assert np.abs(center - truth).max() < 1.0
+
+
+# --- a start shared by windows holding the same rows (the tiles of a band) ---
+
+def _band(seed=5, shape=(224, 448), motion="inplane"):
+    """A synthetic pair cut into two side-by-side windows that hold the same
+    rows, each with its own reference window (a halo of ``halo`` px, NaN
+    beyond the image as ``rsmb detect`` reads it)."""
+    pair = ops.synthesize_pair(shape, motion=motion, changes=4, noise=0.002, seed=seed)
+    halo, half = 40, shape[1] // 2
+    padded = np.pad(pair.reference.astype(np.float32), halo, constant_values=np.nan)
+    windows = []
+    for c0 in (0, half):
+        ref = padded[:, c0:c0 + half + 2 * halo]
+        windows.append(dict(reference=ref, distorted=pair.distorted[:, c0:c0 + half],
+                            reference_origin_yx=(-halo, c0 - halo), distorted_origin_yx=(0, c0)))
+    return pair, ops.RegistrationParams(), windows
+
+
+def _count_searches(monkeypatch):
+    from rsmb.ops.registration import _register
+
+    calls = []
+
+    def counted(*args, **kw):
+        calls.append(1)
+        return _coarse_search(*args, **kw)
+
+    from rsmb.ops.registration._start import _coarse_search
+    monkeypatch.setattr(_register, "_coarse_search", counted)
+    return calls
+
+
+@pytest.mark.parametrize("seed", [5, 6, 7, 8])
+@pytest.mark.parametrize("motion", ["inplane", "translation"])
+def test_a_start_block_around_the_bands_start_ends_where_its_own_search_ends(motion, seed):
+    """The right window's start block solved around the left window's start
+    (:func:`_shared_start`) lands where the right window's own search does,
+    to a small fraction of a lattice step, though the two windows' own
+    starts differ by up to a step or more (rz against ty on narrow windows)."""
+    from rsmb.ops.registration import _register
+
+    pair, params, (left, right) = _band(motion=motion, seed=seed)
+    start = ops.find_start(camera=pair.camera, params=params, **left)
+    own = ops.find_start(camera=pair.camera, params=params, **right)
+    params = params.resolved(pair.camera)
+    ref, dist, valid = _register._windows(right["reference"], right["distorted"], None, None)
+    solver = _register._solver(ref, dist, valid, pair.camera, params, right["reference_origin_yx"],
+                               right["distorted_origin_yx"], None, None, _register.UNTIMED)
+    row, center = _shared_start(solver, start, _register._informative(dist, valid, params), 0)
+    assert row == own.row
+    assert (np.abs(center - np.asarray(own.pose)) <= 0.15 * np.asarray(params.step)).all()
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+@pytest.mark.parametrize("motion", ["inplane", "translation"])
+def test_a_window_from_its_bands_start_tracks_the_truth(monkeypatch, motion, seed):
+    """Started from the left window's start, the right window runs no search
+    of its own, follows the true path as closely as the test_register cases
+    ask, and most of its rows are the rows it finds alone (a start a
+    hundredth of a pixel apart may tip an edge row or a re-anchoring)."""
+    pair, params, (left, right) = _band(motion=motion, seed=seed)
+    start = ops.find_start(camera=pair.camera, params=params, **left)
+    assert start is not None and start.axes == params.axes
+    truth = pair.trajectory[start.row, [ops.POSE_AXES.index(a) for a in params.axes]]
+    assert np.abs(np.asarray(start.pose)[:2] - truth[:2]).max() < 0.5  # px
+    alone = ops.register(camera=pair.camera, params=params, **right)
+    calls = _count_searches(monkeypatch)
+    shared = ops.register(camera=pair.camera, params=params, start=start, **right)
+    assert not calls and shared.timings["shared_start"] == 1
+    rows = (shared.row_state == 1) & (alone.row_state == 1)
+    assert rows.mean() > 0.9
+    idx = [ops.POSE_AXES.index(a) for a in shared.axes]
+    err = shared.trajectory[rows] - pair.trajectory[rows][:, idx]
+    assert np.sqrt(np.mean(err[:, :2] ** 2, axis=0)).max() < 0.25  # px
+    same = np.abs(shared.trajectory[rows] - alone.trajectory[rows]).max(axis=1) <= 0.02
+    assert same.mean() >= 0.8
+
+
+def test_a_start_elsewhere_is_not_shared(monkeypatch):
+    """A start whose pose lies several pixels off this window's (another
+    motion, parallax) or whose row is far from any of this window's
+    informative rows: the window searches alone, with the answer it finds alone."""
+    pair, params, (left, right) = _band()
+    start = ops.find_start(camera=pair.camera, params=params, **left)
+    alone = ops.register(camera=pair.camera, params=params, **right)
+    off = dataclasses.replace(start, pose=tuple(np.asarray(start.pose) + np.array([5.0, -4.0, 0.0])))
+    far = dataclasses.replace(start, row=start.row + 10 * SHARED_ROWS)
+    for other in (off, far):
+        calls = _count_searches(monkeypatch)
+        reg = ops.register(camera=pair.camera, params=params, start=other, **right)
+        assert calls and reg.timings["shared_start"] == 0
+        np.testing.assert_array_equal(reg.trajectory, alone.trajectory)
+
+
+def test_a_window_without_data_has_no_start_to_share():
+    pair, params, (left, _) = _band()
+    empty = dict(left, distorted=np.full(left["distorted"].shape, np.nan, np.float32))
+    assert ops.find_start(camera=pair.camera, params=params, **empty) is None
+
+
+def test_a_start_over_other_axes_is_refused():
+    pair, params, (left, right) = _band()
+    start = ops.StartPose(100, (0.0, 0.0), ("tx", "ty"))
+    with pytest.raises(ops.ParameterError, match="start"):
+        ops.register(camera=pair.camera, params=params, start=start, **right)

@@ -55,6 +55,8 @@ def test_tiled_equals_whole(tmp_path, wide_pair, whole_result, tile):
     assert np.sqrt(np.mean(diff[:, :2] ** 2, axis=0)).max() <= 0.1  # px, tx and ty
     assert ops.confusion(b, pair.change_mask).f_measure >= 0.95
     assert summary.tasks_per_tile <= 8
+    # every tile started from its band's start (one search per row of tiles)
+    assert summary.timings["tiles_shared_start"] == 16
 
 
 def test_summary_has_cpu_seconds_per_stage(whole_result):
