@@ -149,7 +149,14 @@ class _Propagation:
         settings = self.solver.settings(problem.width)
         prev, pos, c_prev = start, 0, out.trajectory[start].astype(np.float64)
         anchor = np.empty((2, len(self.step)))
+        self._refill_table()  # slots may have been reused since the table was filled
+        generation = problem.generation
         while pos < len(rows):
+            if problem.generation != generation:
+                # a solve outside the loop (a re-anchoring, a row off the table)
+                # reused slots of far bands: the table must not point at them
+                self._refill_table()
+                generation = problem.generation
             center_prev, w_prev = self.weights[prev]
             # the stack grows as pre-warped images are made: read it afresh
             if problem.stack is not None:
