@@ -45,10 +45,13 @@ ROWSOLVE_REVISION = 7
 #: high-contrast roofs cover a fifth of a row they outweigh the low-contrast
 #: ground and draw the path after the roofs.
 UNEXPLAINED_KNEES = 3.0
-#: Unexplained pixels are left out only while the model explains at least
+#: The pixels left out are those above the smallest of 1, 2 or 4 times
+#: :data:`UNEXPLAINED_KNEES` knees under which the model explains at least
 #: this share of the row's valid pixels: the fit follows the larger support
-#: (the ground); a model that explains less is no guide, and the row is
-#: solved on all its pixels.
+#: (the ground), and a model a pixel or so off (textured ground's residual
+#: grows with the offset, a roof's stays at its contrast) still leaves the
+#: roofs out.  A model that explains less even then is no guide, and the row
+#: is solved on all its pixels.
 EXPLAINED_SHARE = 0.5
 #: Solves of one row at most: the pixels left out are found again from each
 #: solve's model until they settle.
@@ -312,6 +315,19 @@ def _explained(g, model, valid, knee, fit):
 
 
 @numba.njit(**_SUMS)
+def _fit_mask(g, model, valid, knee, fit):
+    """``fit`` (N,) = the pixels ``model`` explains (:data:`EXPLAINED_SHARE`,
+    at the smallest of 1, 2, 4 times ``knee``), else every valid one."""
+    n_valid = 0
+    for j in range(g.shape[0]):
+        n_valid += valid[j]
+    for scale in (1.0, 2.0, 4.0):
+        if _explained(g, model, valid, scale * knee, fit) >= EXPLAINED_SHARE * n_valid:
+            return
+    fit[:] = valid
+
+
+@numba.njit(**_SUMS)
 def _first_weights(cols, g, w):
     """``w`` (zero on entry) = the grid's middle pose (the pose the caller
     centred it on) at its least-squares gain."""
@@ -358,8 +374,7 @@ def _solve_explained(cols, g, w, settings, model, from_middle=False):
         else:
             first[:] = w
         _model(cols, first, model)
-        if _explained(g, model, valid, knee, fit) < EXPLAINED_SHARE * n_valid:
-            fit[:] = valid
+        _fit_mask(g, model, valid, knee, fit)
     g_fit, again = np.empty(n), np.empty(n, np.bool_)
     obj, status = np.inf, SOLVED
     for _ in range(EXPLAIN_PASSES if trim else 1):
@@ -369,8 +384,9 @@ def _solve_explained(cols, g, w, settings, model, from_middle=False):
         obj, _, _, status = _solve(sub, g_fit, w, settings.lam, settings.delta, settings.tol, settings.max_outer,
                                    settings.max_add)
         _model(cols, w, model)
-        if not trim or _explained(g, model, valid, knee, again) < EXPLAINED_SHARE * n_valid:
+        if not trim:
             break
+        _fit_mask(g, model, valid, knee, again)
         changed = 0
         for j in range(n):
             changed += again[j] != fit[j]

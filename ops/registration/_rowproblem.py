@@ -7,8 +7,8 @@ import numpy as np
 from .._camera import full_poses
 from .._oracle import solve_row_exact
 from .._timing import UNTIMED
-from ._propagate_kernels import (EXPLAIN_PASSES, EXPLAINED_SHARE, UNEXPLAINED_KNEES, _explained, _first_weights,
-                                 _model, _Settings, _solve_explained)
+from ._propagate_kernels import (EXPLAIN_PASSES, UNEXPLAINED_KNEES, _first_weights, _fit_mask, _model, _Settings,
+                                 _solve_explained)
 from ._rowsolve import SOLVED, _Columns, _huber_value
 from .._warp import _build_row, _gather_row, _warp_into
 
@@ -310,15 +310,13 @@ class _Solver:
         else:
             first[:] = w
         _model(cols, first, model)
-        if _explained(g, model, valid, knee, fit) < EXPLAINED_SHARE * valid.sum():
-            fit[:] = valid
+        _fit_mask(g, model, valid, knee, fit)
         for _ in range(EXPLAIN_PASSES):
             solution = solve_row_exact(cols.src.T, np.where(fit, g, 0.0), lambda_w=self.params.lambda_w,
                                        lambda_chi=self.params.lambda_chi, weights=fit.astype(np.float64))
             w[:] = np.maximum(solution.w, 0.0)
             _model(cols, w, model)
-            if _explained(g, model, valid, knee, again) < EXPLAINED_SHARE * valid.sum():
-                break
+            _fit_mask(g, model, valid, knee, again)
             if (again != fit).sum() <= max(2, valid.sum() // 200):
                 break
             fit[:] = again
