@@ -22,7 +22,7 @@ import numpy as np
 import math
 
 from .._warp import _warp_into
-from ._rowsolve import SOLVED, _Columns, _huber_value, _solve
+from ._rowsolve import SOLVED, _column, _Columns, _solve
 
 __all__ = []
 
@@ -34,28 +34,7 @@ _SUMS = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})
 #: :mod:`ops.registration._rowsolve` or of :func:`ops._warp._warp_into` (and
 #: what it calls) raises this number, or a checkout that ran the old code
 #: keeps running it here.
-ROWSOLVE_REVISION = 7
-
-#: A pixel whose residual under a row's model exceeds the Huber knee
-#: (``lambda_chi / 2``) this many times over is not explained by the row's
-#: poses: a change, or a raised structure (a roof) that parallax moves away
-#: from the ground.  The row's weights are fitted to the pixels its model
-#: explains (:func:`_solve_explained`): under eq. 13's Huber loss every
-#: unexplained pixel still pulls the weights with the full slope, and where
-#: high-contrast roofs cover a fifth of a row they outweigh the low-contrast
-#: ground and draw the path after the roofs.
-UNEXPLAINED_KNEES = 3.0
-#: The pixels left out are those above the smallest of 1, 2 or 4 times
-#: :data:`UNEXPLAINED_KNEES` knees under which the model explains at least
-#: this share of the row's valid pixels: the fit follows the larger support
-#: (the ground), and a model a pixel or so off (textured ground's residual
-#: grows with the offset, a roof's stays at its contrast) still leaves the
-#: roofs out.  A model that explains less even then is no guide, and the row
-#: is solved on all its pixels.
-EXPLAINED_SHARE = 0.5
-#: Solves of one row at most: the pixels left out are found again from each
-#: solve's model until they settle.
-EXPLAIN_PASSES = 3
+ROWSOLVE_REVISION = 8
 
 #: A row whose centroid moves the window's farthest pixel more than this (px)
 #: away from where the path before it leads (its last pose plus its velocity)
@@ -79,10 +58,8 @@ DRIFT_PX_PER_ROW = 0.1
 
 class _Settings(NamedTuple):
     """The row solver's settings: eq. 13's ``lambda_w``, the Huber knee
-    ``lambda_chi / 2``, the KKT tolerance, iteration limits, the fewest
-    valid pixels a row needs, and the residual above which a pixel is not
-    explained (:data:`UNEXPLAINED_KNEES`; inf: every valid pixel is fitted,
-    eq. 13 as written)."""
+    ``lambda_chi / 2``, the KKT tolerance, iteration limits and the fewest
+    valid pixels a row needs."""
 
     lam: float
     delta: float
@@ -90,7 +67,6 @@ class _Settings(NamedTuple):
     max_outer: int
     max_add: int
     min_valid: int
-    unexplained: float = np.inf
 
 
 class _Prewarp(NamedTuple):
@@ -288,134 +264,15 @@ def _lattice_columns(source, g_valid, a):
 
 
 @numba.njit(**_SUMS)
-def _model(cols, w, out):
-    """``out`` (N,) = ``F_i w`` read straight from ``cols.src`` (every pixel;
-    only the valid ones mean anything)."""
-    k_count, n = cols.a.shape
-    for j in range(n):
-        out[j] = 0.0
-    for k in range(k_count):
-        if w[k] > 0.0:
-            c = cols.col_of[k]
-            row = cols.src[cols.row_of[k], c:c + n]
-            wk = w[k]
-            for j in range(n):
-                out[j] += wk * row[j]
-
-
-@numba.njit(**_SUMS)
-def _explained(g, model, valid, knee, fit):
-    """``fit`` (N,) = valid pixels whose residual is at most ``knee``; returns their count."""
-    count = 0
-    for j in range(g.shape[0]):
-        ok = valid[j] and abs(g[j] - model[j]) <= knee
-        fit[j] = ok
-        count += ok
-    return count
-
-
-@numba.njit(**_SUMS)
-def _fit_mask(g, model, valid, knee, fit):
-    """``fit`` (N,) = the pixels ``model`` explains (:data:`EXPLAINED_SHARE`,
-    at the smallest of 1, 2, 4 times ``knee``), else every valid one."""
-    n_valid = 0
-    for j in range(g.shape[0]):
-        n_valid += valid[j]
-    for scale in (1.0, 2.0, 4.0):
-        if _explained(g, model, valid, scale * knee, fit) >= EXPLAINED_SHARE * n_valid:
-            return
-    fit[:] = valid
-
-
-@numba.njit(**_SUMS)
-def _first_weights(cols, g, w):
-    """``w`` (zero on entry) = the grid's middle pose (the pose the caller
-    centred it on) at its least-squares gain."""
-    k_count, n = cols.a.shape
-    k = k_count // 2
-    c = cols.col_of[k]
-    row = cols.src[cols.row_of[k], c:c + n]
-    num, den = 0.0, 0.0
-    for j in range(n):
-        if cols.valid[j]:
-            num += row[j] * g[j]
-            den += row[j] * row[j]
-    if den > 0.0 and num > 0.0:
-        w[k] = num / den
-
-
-@numba.njit(**_SUMS)
-def _solve_explained(cols, g, w, settings, model, from_middle=False):
-    """Eq. 13 on the pixels the row's own model explains (in place on ``w``,
-    warm start or zero; ``g`` (N,) float64, 0 where ``cols.valid`` is
-    False): the pixels whose residual under the starting weights (with none,
-    or ``from_middle``, the grid's middle pose: :func:`_first_weights`) exceeds
-    ``settings.unexplained`` are left out, then found again from each
-    solve's model (at most :data:`EXPLAIN_PASSES` solves), while the model
-    explains at least :data:`EXPLAINED_SHARE` of the valid pixels.
-    ``cols.a`` is the solve's work space; ``model`` (N,) receives ``F_i w``.
-    Returns (objective, status): with ``settings.unexplained`` inf, eq. 13's
-    objective; otherwise eq. 13's on every valid pixel with each pixel's
-    loss capped at the unexplained residual's (a cost comparable across
-    grids that a few unexplained pixels cannot dominate)."""
-    valid, knee = cols.valid, settings.unexplained
-    k_count, n = cols.a.shape
-    n_valid = 0
-    for j in range(n):
-        n_valid += valid[j]
-    fit = valid.copy()
-    trim = knee < np.inf
-    if trim:
-        first = np.zeros(k_count)
-        if from_middle or w.max() <= 0.0:
-            _first_weights(cols, g, first)
-            if w.max() <= 0.0:
-                w[:] = first
-        else:
-            first[:] = w
-        _model(cols, first, model)
-        _fit_mask(g, model, valid, knee, fit)
-    g_fit, again = np.empty(n), np.empty(n, np.bool_)
-    obj, status = np.inf, SOLVED
-    for _ in range(EXPLAIN_PASSES if trim else 1):
-        for j in range(n):
-            g_fit[j] = g[j] if fit[j] else 0.0
-        sub = _Columns(cols.src, cols.row_of, cols.col_of, fit, cols.a, np.zeros(k_count, np.bool_))
-        obj, _, _, status = _solve(sub, g_fit, w, settings.lam, settings.delta, settings.tol, settings.max_outer,
-                                   settings.max_add)
-        _model(cols, w, model)
-        if not trim:
-            break
-        _fit_mask(g, model, valid, knee, again)
-        changed = 0
-        for j in range(n):
-            changed += again[j] != fit[j]
-        if changed <= max(2, n_valid // 200):
-            break
-        fit[:] = again
-    if not trim:
-        return obj, status
-    cap = _huber_value(knee, settings.delta)
-    total = 0.0
-    for j in range(n):
-        if valid[j]:
-            total += min(_huber_value(g[j] - model[j], settings.delta), cap)
-    for k in range(k_count):
-        total += settings.lam * w[k]
-    return total, status
-
-
-@numba.njit(**_SUMS)
 def _row_step(source, row, settings, w, a):
     """One row of the propagation in a single call (no Python in between):
     the row's columns of ``F_i`` from ``source`` (:func:`_lattice_columns`,
     ``a`` (K, N) their work space), eq. 13 solved warm-started from ``w`` (in
-    place) on the pixels the row's model explains
-    (:func:`_solve_explained`), and the registered row, the change term and
-    the validity written into ``row`` (NaN / 0 / False where invalid).
-    Returns (objective, valid pixel count, whether the solve met its
-    optimality conditions, :data:`ops.registration._rowsolve.SOLVED`); the
-    objective is inf when too few pixels are valid to solve.
+    place), and the registered row, the change term and the validity written
+    into ``row`` (NaN / 0 / False where invalid).  Returns (objective, valid
+    pixel count, whether the solve met its optimality conditions,
+    :data:`ops.registration._rowsolve.SOLVED`); the objective is inf when too
+    few pixels are valid to solve.
     """
     k_count, n = a.shape
     delta = settings.delta
@@ -440,8 +297,13 @@ def _row_step(source, row, settings, w, a):
             reg_out[j] = np.nan
             chi_out[j] = 0.0
         return np.inf, count, True
-    reg = np.empty(n)
-    obj, status = _solve_explained(cols, g, w, settings, reg)
+    obj, _, _, status = _solve(cols, g, w, settings.lam, delta, settings.tol, settings.max_outer, settings.max_add)
+    reg = np.zeros(n)
+    for k in range(k_count):
+        if w[k] > 0.0:
+            ak = _column(cols, k)
+            for j in range(n):
+                reg[j] += w[k] * ak[j]
     for j in range(n):
         if valid_out[j]:
             reg_out[j] = reg[j]

@@ -7,9 +7,8 @@ import numpy as np
 from .._camera import full_poses
 from .._oracle import solve_row_exact
 from .._timing import UNTIMED
-from ._propagate_kernels import (EXPLAIN_PASSES, UNEXPLAINED_KNEES, _first_weights, _fit_mask, _model, _Settings,
-                                 _solve_explained)
-from ._rowsolve import SOLVED, _Columns, _huber_value
+from ._propagate_kernels import _Settings
+from ._rowsolve import SOLVED, _solve_huber_nn
 from .._warp import _build_row, _gather_row, _warp_into
 
 __all__ = []
@@ -265,16 +264,9 @@ class _Solver:
         """The compiled kernels' settings for rows of ``width`` pixels."""
         p = self.params
         return _Settings(float(p.lambda_w), float(self.delta), float(p.tol), int(p.max_outer), int(p.max_add),
-                         self.min_valid(width), float(UNEXPLAINED_KNEES * self.delta))
+                         self.min_valid(width))
 
     def solve(self, rows, space, center, w0=None):
-        """Eq. 13 for ``rows`` (one row, or a block solved jointly) on the
-        grid of ``space`` around ``center``, warm-started from ``w0``, on
-        the pixels the model explains
-        (:func:`ops.registration._propagate_kernels._solve_explained`).
-        Returns the grid's lattice index and poses, the weights, ``F_i``
-        (K, N) and the valid pixels; ``last_cost`` is the objective per
-        valid pixel (capped per pixel: comparable across grids)."""
         index, poses = space.grid(center)
         a, g, valid = self.problem.build(rows, index, poses)
         self.last_cost = np.inf
@@ -283,46 +275,17 @@ class _Solver:
             # too little of the row sees the reference: nothing to solve
             valid[:] = False
             return index, poses, np.zeros(len(poses)), a, valid
-        w = np.zeros(len(poses)) if w0 is None else w0.copy()
-        g = np.asarray(g, dtype=np.float64)
-        cols = _Columns(a, np.arange(len(poses)), np.zeros(len(poses), np.int64), valid, np.empty_like(a),
-                        np.zeros(len(poses), bool))
         if self.params.solver == "exact":
-            objective = self._solve_exact(cols, g, w, len(rows))
+            solution = solve_row_exact(a.T, g, lambda_w=self.params.lambda_w, lambda_chi=self.params.lambda_chi,
+                                       weights=valid.astype(np.float64))
+            w, objective = np.maximum(solution.w, 0.0), solution.objective
         else:
-            # a block's pixels are judged from its centre pose, whatever
-            # its warm start: warm and cold solves then fit the same pixels
-            objective, status = _solve_explained(cols, g, w, self.settings(valid.size), np.empty(len(g)),
-                                                 len(rows) > 1)
+            w = np.zeros(len(poses)) if w0 is None else w0.copy()
+            objective, _, _, status = _solve_huber_nn(a, g, w, self.params.lambda_w, self.delta, self.params.tol,
+                                                      self.params.max_outer, self.params.max_add)
             self.last_converged = status == SOLVED
-        self.last_cost = objective / valid.sum()
+        self.last_cost = objective / valid.sum()  # eq. 13 per valid pixel, comparable across grids
         return index, poses, w, a, valid
-
-    def _solve_exact(self, cols, g, w, rows):
-        """:func:`ops.registration._propagate_kernels._solve_explained` with
-        the exact cvxpy solve of eq. 13 (the oracle) in place of the fast one."""
-        settings, valid, n = self.settings(len(g)), cols.valid, len(g)
-        knee, model, fit, again = settings.unexplained, np.empty(n), valid.copy(), np.empty(n, bool)
-        first = np.zeros(len(w))
-        if rows > 1 or not w.any():
-            _first_weights(cols, g, first)
-            w[:] = w if w.any() else first
-        else:
-            first[:] = w
-        _model(cols, first, model)
-        _fit_mask(g, model, valid, knee, fit)
-        for _ in range(EXPLAIN_PASSES):
-            solution = solve_row_exact(cols.src.T, np.where(fit, g, 0.0), lambda_w=self.params.lambda_w,
-                                       lambda_chi=self.params.lambda_chi, weights=fit.astype(np.float64))
-            w[:] = np.maximum(solution.w, 0.0)
-            _model(cols, w, model)
-            _fit_mask(g, model, valid, knee, again)
-            if (again != fit).sum() <= max(2, valid.sum() // 200):
-                break
-            fit[:] = again
-        cap = _huber_value(knee, self.delta)
-        loss = [min(_huber_value(r, self.delta), cap) for r in (g - model)[valid]]
-        return float(np.sum(loss)) + self.params.lambda_w * float(w.sum())
 
 
 def _centroid(poses, w):
