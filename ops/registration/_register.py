@@ -130,6 +130,8 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
     -------
     Registration
     """
+    if start is not None and not isinstance(start, StartPose):
+        raise ParameterError(f"start: expected a StartPose or None, got {type(start).__name__}")
     camera = camera or Camera.for_shape(distorted.shape)
     params = (params or RegistrationParams()).resolved(camera)
     ref, dist, dvalid = _windows(reference, distorted, reference_valid, distorted_valid)
@@ -144,8 +146,6 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
         prior = prior[:, :len(params.axes)]
     else:
         slow = _slow_part(slow, params, ref, dist, dvalid, camera, reference_origin_yx, distorted_origin_yx, clock)
-    if start is not None and not isinstance(start, StartPose):
-        raise ParameterError(f"start: expected a StartPose or None, got {type(start).__name__}")
     args = (camera, params, reference_origin_yx, distorted_origin_yx, prior)
     # eq. 13 has one gain per row: a gain changing along the rows by more than a
     # few per cent biases the poses, so a slope fitted to the registration is

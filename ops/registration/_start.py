@@ -290,9 +290,7 @@ def _adapted_half_width(space, spread):
 def _start(solver, candidates, informative, mid):
     """Start pose of the middle block and the row neighbourhood, widened to the
     blur extent of the middle row."""
-    params = solver.params
-    block = _block_rows(informative, mid, params.block_rows, len(informative))
-    center, _ = _choose_start(solver, candidates, block)
+    center, _ = _found_start(solver, candidates, informative, mid)
     return _neighbourhood(solver, mid, center), center
 
 

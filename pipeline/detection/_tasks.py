@@ -15,6 +15,7 @@ import zarr
 from rsmb import ops
 from rsmb import tiles
 from rsmb.ops._timing import StageClock
+from rsmb.ops.registration._start import SHARED_ROWS
 from rsmb.tiles import ingest_core, read_padded
 from rsmb.tiles._stitch import TileLabels
 
@@ -173,22 +174,18 @@ def _slow_prior(store, tile, params):
     return ops.SlowPath(found[:, :2], found[:, 2])
 
 
-#: Rows either side of a tile's middle row that :func:`start_task` compares.
-SEARCH_ROWS = 48
-
-
 def start_task(store, band, camera, params):
     """Stage 1a: the start a band of tiles (``band``: the tiles of one grid
     row, which hold the same capture rows) shares: :func:`ops.find_start` on
     the windows of its most textured tile, the one whose middle rows (those
-    the start search covers) have the largest mean absolute difference
+    the start search covers, :data:`SHARED_ROWS` either side) have the largest mean absolute difference
     between neighbouring pixels of a row, no-data counted as flat.  The
     choice looks at every tile of the band, done or not, so a ``--resume``
     finds the same start.  Returns an :class:`ops.StartPose` or None."""
     def texture(tile):
         rows = tile.core[0]
         mid = (rows.start + rows.stop) // 2
-        window = store.read("capture", slice(max(rows.start, mid - SEARCH_ROWS), min(rows.stop, mid + SEARCH_ROWS)),
+        window = store.read("capture", slice(max(rows.start, mid - SHARED_ROWS), min(rows.stop, mid + SHARED_ROWS)),
                             tile.core[1])
         return float(np.nansum(np.abs(np.diff(window, axis=1)))) / window.size
 

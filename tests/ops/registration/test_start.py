@@ -207,3 +207,9 @@ def test_a_start_over_other_axes_is_refused():
     start = ops.StartPose(100, (0.0, 0.0), ("tx", "ty"))
     with pytest.raises(ops.ParameterError, match="start"):
         ops.register(camera=pair.camera, params=params, start=start, **right)
+
+
+def test_a_start_that_is_no_start_pose_is_refused_before_any_work():
+    pair, params, (_, right) = _band()
+    with pytest.raises(ops.ParameterError, match="start: expected a StartPose"):
+        ops.register(camera=pair.camera, params=params, start=(100, (0.0, 0.0, 0.0)), **right)
