@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["HISTORY_NAME", "Change", "Footprint", "History", "NightCounts", "read_history", "update_history",
-           "observe_capture"]
+           "observe_capture", "read_observation"]
 
 HISTORY_NAME = "changes.gpkg"
 CHANGES_LAYER = "changes"
@@ -138,7 +138,7 @@ def _to_crs(geometry, source, target):
     return shapely.transform(geometry, lambda xy: np.column_stack(transformer.transform(xy[:, 0], xy[:, 1])))
 
 
-def observe_capture(mask_path, crs):
+def observe_capture(mask_path, crs, *, read=None):
     """(coverage, changes) of a capture's ground-frame mask COG, in ``crs``.
 
     Parameters
@@ -147,6 +147,10 @@ def observe_capture(mask_path, crs):
         ``change_mask_reference.tif``: 1 change, 0 no change, 255 no evidence.
     crs : str
         The history's CRS (WKT or ``EPSG:...``).
+    read : tuple, optional
+        What :func:`read_observation` gave for this file (a night reads each
+        capture's mask as the capture ends, beside the other captures'
+        detection); read now when None.
 
     Returns
     -------
@@ -154,6 +158,14 @@ def observe_capture(mask_path, crs):
         Where the mask has evidence (0 or 1).
     changes : list of shapely geometry
         One (multi)polygon per 8-connected component of 1s.
+    """
+    coverage, changes, source = read_observation(mask_path) if read is None else read
+    return _to_crs(coverage, source, crs), [_to_crs(g, source, crs) for g in changes]
+
+
+def read_observation(mask_path):
+    """(coverage, changes, CRS as WKT or None) of a capture's ground-frame
+    mask COG in the mask's own CRS: what :func:`observe_capture` reprojects.
 
     Notes
     -----
@@ -173,9 +185,7 @@ def observe_capture(mask_path, crs):
     for geom, value in shapes(labels.astype(np.int32), mask=labels > 0, connectivity=4, transform=transform):
         parts.setdefault(int(value), []).append(shapely.geometry.shape(geom))
     changes = [shapely.union_all(parts[k]) for k in range(1, n + 1)]
-    source = source.to_wkt() if source is not None else None
-    return (_to_crs(shapely.union_all(cover), source, crs),
-            [_to_crs(g, source, crs) for g in changes])
+    return shapely.union_all(cover), changes, source.to_wkt() if source is not None else None
 
 
 # ----------------------------------------------------------------------- matching
@@ -344,7 +354,7 @@ def _counts(night, changes, layer, captures):
                        sum(c.status == "unobserved" for c in changes), len(changes))
 
 
-def update_history(out, rows, night, crs):
+def update_history(out, rows, night, crs, *, observed=None):
     """Take the observations not yet in ``OUT_DIR/changes.gpkg`` into it (module docstring: rules).
 
     Parameters
@@ -359,6 +369,9 @@ def update_history(out, rows, night, crs):
         Tonight's name (for the counts returned).
     crs : str
         The reference mosaic's CRS (WKT or ``EPSG:...``); an existing history keeps its own.
+    observed : dict, optional
+        Mask path (str) -> its :func:`read_observation`, for the masks read
+        already (the others are read here).
 
     Returns
     -------
@@ -384,7 +397,7 @@ def update_history(out, rows, night, crs):
     for name in sorted(pending):
         observations = []
         for row, mask in sorted(pending[name], key=lambda p: p[0].id):
-            coverage, geoms = observe_capture(mask, crs)
+            coverage, geoms = observe_capture(mask, crs, read=(observed or {}).get(str(mask)))
             observations.append((Footprint(row.id, row.capture, name, coverage), geoms))
         layers[name] = _take_in_night(changes, name, observations)
         footprints.extend(fp for fp, _ in observations)

@@ -36,13 +36,14 @@ def latest_done(ledger):
     return [done[capture] for capture in sorted(done)]
 
 
-def close_night(out, ledger, night, references):
+def close_night(out, ledger, night, references, *, observed=None):
     """Update ``out``'s history, catalog and map after the night ``night`` (its captures recorded in
-    ``ledger``); the history is in the CRS of the first reference file.  Returns a NightRecord."""
+    ``ledger``); the history is in the CRS of the first reference file.  ``observed``: the masks the
+    night read already (:func:`update_history`).  Returns a NightRecord."""
     out = Path(out)
     rows = latest_done(ledger)
     crs = tiles.probe_header(references[0])[1].crs
-    history = update_history(out, rows, night, crs)
+    history = update_history(out, rows, night, crs, observed=observed)
     catalog = update_catalog(out, rows, history=history.path if history.path.is_file() else None)
     drawn = out / MAP_NAME
     if history.updated or not drawn.is_file():  # the map is a function of the history

@@ -45,6 +45,7 @@ from rsmb.ops._errors import one_line
 
 from ..detection._detect import detect
 from ..detection._plan import VERSION, DetectConfig
+from ._history import MASK_NAME
 from ._ledger import LEDGER_NAME, SETTLE, FileStat, Ledger, RunKey
 from ..detection._outputs import write_products
 from .._scheduler import WORKER_TIMEOUT, check_scheduler, open_runner
@@ -276,9 +277,10 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         shutil.rmtree(out / PARTIAL, ignore_errors=True)  # folders a killed night left half-built
         _migrate_layout(out, ledger)
         halt = stop if isinstance(stop, _Stop) else _Stop(stop)
+        observed = {}  # each placed capture's mask, read for the history as the capture ends
         results = _night(ledger, found, out, references, night, config, settle,
                          dict(scheduler=scheduler, workers=workers, parallel=parallel,
-                              worker_timeout=worker_timeout, report=report), halt)
+                              worker_timeout=worker_timeout, report=report, observed=observed), halt)
         result = SurveyResult(results, *(sum(r.status == s for r in results) for s in ("done", "skipped", "failed")),
                               night=night, interrupted=halt.event.is_set())
         summary = _write_night(out, result)
@@ -287,7 +289,7 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         from ._night_end import close_night
         from ._survey_html import write_index
 
-        record = close_night(out, ledger, night, references)  # history, STAC catalog, map
+        record = close_night(out, ledger, night, references, observed=observed)  # history, STAC catalog, map
         index = write_index(out, ledger.captures(), prefix=_fixed_prefix(captures).absolute(), record=record)
     return dataclasses.replace(result, summary=str(summary), index=str(index))
 
@@ -452,7 +454,8 @@ def _run_all(ledger, todo, out, references, config, run, stop):
     interrupted = False
     try:
         futures = {driver.submit(_run_capture, capture, name, out, references, config, runner, run["report"], slots,
-                                 st, stop): (capture, name, run_id, why) for capture, name, run_id, why, st in todo}
+                                 st, stop, run["observed"]): (capture, name, run_id, why)
+                   for capture, name, run_id, why, st in todo}
         pending, count, deadline = set(futures), 0, None
         while pending:
             if stop.event.is_set() and deadline is None:
@@ -530,13 +533,15 @@ def _fail(ledger, run_id, capture, exc, seconds):
     return CaptureResult(str(capture), "failed", reason, seconds=seconds or 0.0)
 
 
-def _run_capture(capture, name, out, references, config, runner, report, slots, st, stop):
+def _run_capture(capture, name, out, references, config, runner, report, slots, st, stop, observed):
     """One capture, built aside and renamed into place: its store, products,
     thumbnail and report.  Runs in a driver thread; its tasks on ``runner``;
     its detection holds one of ``slots`` (a semaphore), its products and
     report none.  A failure leaves nothing behind; so does a capture whose
     size or modification time now differs from ``st`` (its stat when it was
-    hashed): it changed during its detection."""
+    hashed): it changed during its detection.  A placed capture's mask, read
+    for the history here (beside the other captures' detection, not in the
+    night's serial end), goes into ``observed`` by its final path."""
     start = time.perf_counter()
     header = tiles.probe_header(capture)[1]
     if not tiles.is_georeferenced(header):
@@ -547,15 +552,29 @@ def _run_capture(capture, name, out, references, config, runner, report, slots, 
     try:
         folder = out / CAPTURES / name
         features, read = _build(capture, aside, folder, references, config, runner, report, slots)
+        mask = _read_observation(aside / MASK_NAME)
         _check_unchanged(capture, st)
         if stop.abandoned.is_set():  # the night gave up on it: it places nothing now
             raise InputError(f"{capture}: interrupted while running ({stop.why})")
         folder.parent.mkdir(parents=True, exist_ok=True)
         tiles.swap_into_place(aside, folder, overwrite=True)  # a capture redone replaces its folder
+        if mask is not None:  # the same file, renamed with its folder
+            observed[str(folder / MASK_NAME)] = mask
     finally:
         shutil.rmtree(aside, ignore_errors=True)
     return CaptureResult(str(capture), "done", "", list(read), str(folder), str(folder / "changes.gpkg"),
                          len(features), float(sum(f.area_m2 for f in features)), time.perf_counter() - start)
+
+
+def _read_observation(path):
+    """:func:`._history.read_observation` of ``path``, or None when it cannot
+    be read now (the night's end reads it again and reports what it finds)."""
+    from ._history import read_observation
+
+    try:
+        return read_observation(path)
+    except Exception:  # noqa: BLE001 - the history step owns this file's errors
+        return None
 
 
 def _check_unchanged(capture, st):

@@ -296,6 +296,43 @@ def test_the_next_capture_is_detected_while_one_writes_its_report(tmp_path, monk
     assert any(d0 < r1 and r0 < d1 for d0, d1 in detections for r0, r1 in spans["report"])
 
 
+def test_the_history_reads_each_mask_as_its_capture_ends(tmp_path, monkeypatch):
+    """Each done capture's ground-frame mask is read for the history once, in
+    the capture's own driver thread as it ends (beside the other captures'
+    detection), not in the night's serial end; the history is the one read
+    from the placed files afresh."""
+    import threading
+
+    from rsmb import tiles
+    from rsmb.pipeline.archive import _history
+    from rsmb.pipeline.archive._night_end import latest_done
+    from rsmb.pipeline.archive._ledger import Ledger
+
+    references, night = _night(tmp_path, _scene(), bad=False)
+    reads, read = [], _history.read_observation
+
+    def spy(path):
+        reads.append((Path(path).name, threading.current_thread() is threading.main_thread()))
+        return read(path)
+
+    monkeypatch.setattr(_history, "read_observation", spy)
+    out = tmp_path / "out"
+    assert _survey(references, night, out) == 0
+    assert reads == [("change_mask_reference.tif", False)] * len(GOOD)
+    monkeypatch.setattr(_history, "read_observation", read)
+    again = tmp_path / "again"
+    again.mkdir()
+    with Ledger(out / "ledger.sqlite") as ledger:
+        rows = latest_done(ledger)
+    night_name = rows[0].night
+    _history.update_history(again, rows, night_name, tiles.probe_header(references[0])[1].crs)
+    kept, fresh = _history.read_history(out / "changes.gpkg"), _history.read_history(again / "changes.gpkg")
+    assert len(kept.changes) == len(fresh.changes) > 0
+    assert [(c.geometry.wkb, c.status, c.captures) for c in kept.changes] == \
+           [(c.geometry.wkb, c.status, c.captures) for c in fresh.changes]
+    assert [f.geometry.wkb for f in kept.footprints] == [f.geometry.wkb for f in fresh.footprints]
+
+
 def _capture_files(out):
     """The bytes of every file in the night's capture folders (not the ledger,
     nights/, stac/ or index.html: they record when each night ran), by path."""
