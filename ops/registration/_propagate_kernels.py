@@ -242,25 +242,42 @@ def _lattice_columns(source, g_valid, a):
             distinct += 1
         row_of[k] = first[key]
     src = np.zeros((max(distinct, 1), width), np.float32)
-    bad = np.zeros(max(distinct, 1), np.bool_)
     x0 = source.x0 - hi
+    shifts = np.zeros((0, 0), np.bool_)  # made for the first row holding no-data
+    good = np.empty(width, np.bool_)
     for q in range(distinct):
         img = stack[pick[q] // hr, pick[q] % hr]
+        row_src = src[q]
+        spoilt = False
         for c in range(width):
             col = x0 + c
             if col < 0 or col >= wr or math.isnan(img[col]):
-                bad[q] = True
+                spoilt = True
             else:
-                src[q, c] = img[col]
-    for k in range(k_count):  # only rows holding no-data are read pixel by pixel
-        q = row_of[k]
-        if bad[q] and source.y - sy[k] >= 0 and source.y - sy[k] < hr:
-            img = stack[slot[k], source.y - sy[k]]
-            for j in range(n):
-                col = source.x0 - sx[k] + j
-                if col < 0 or col >= wr or math.isnan(img[col]):
-                    valid[j] = False
+                row_src[c] = img[col]
+        if spoilt:  # a no-data pixel spoils the pixel of every pose reading this row there
+            if shifts.shape[0] == 0:
+                shifts = _shifts_of(row_of, col_of, sy, source.y, hr, distinct, hi - lo)
+            for c in range(width):
+                col = x0 + c
+                good[c] = 0 <= col < wr and not math.isnan(img[col])
+            for s in range(hi - lo + 1):
+                if shifts[q, s]:
+                    for j in range(n):
+                        valid[j] &= good[j + s]
     return _Columns(src, row_of, col_of, valid, a, np.zeros(k_count, np.bool_))
+
+
+@numba.njit(**_JIT)
+def _shifts_of(row_of, col_of, sy, y, hr, distinct, span):
+    """(distinct, span + 1) bool: which columns ``col_of`` (in [0, span])
+    the poses read each distinct row at; a NaN at column c of row q spoils
+    pixel c - s of every pose reading q at s."""
+    shifts = np.zeros((distinct, span + 1), np.bool_)
+    for k in range(row_of.shape[0]):
+        if 0 <= y - sy[k] < hr:
+            shifts[row_of[k], col_of[k]] = True
+    return shifts
 
 
 @numba.njit(**_SUMS)
