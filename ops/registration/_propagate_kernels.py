@@ -243,41 +243,68 @@ def _lattice_columns(source, g_valid, a):
         row_of[k] = first[key]
     src = np.zeros((max(distinct, 1), width), np.float32)
     x0 = source.x0 - hi
-    shifts = np.zeros((0, 0), np.bool_)  # made for the first row holding no-data
-    good = np.empty(width, np.bool_)
+    good = np.ones((max(distinct, 1), width), np.bool_)  # False on no-data and beyond the image
+    spoilt = np.zeros(max(distinct, 1), np.bool_)
     for q in range(distinct):
         img = stack[pick[q] // hr, pick[q] % hr]
-        row_src = src[q]
-        spoilt = False
+        row_src, row_good = src[q], good[q]
         for c in range(width):
             col = x0 + c
             if col < 0 or col >= wr or math.isnan(img[col]):
-                spoilt = True
+                row_good[c] = False
+                spoilt[q] = True
             else:
                 row_src[c] = img[col]
-        if spoilt:  # a no-data pixel spoils the pixel of every pose reading this row there
-            if shifts.shape[0] == 0:
-                shifts = _shifts_of(row_of, col_of, sy, source.y, hr, distinct, hi - lo)
-            for c in range(width):
-                col = x0 + c
-                good[c] = 0 <= col < wr and not math.isnan(img[col])
-            for s in range(hi - lo + 1):
-                if shifts[q, s]:
-                    for j in range(n):
-                        valid[j] &= good[j + s]
+    if spoilt.any():
+        _mark_no_data(good, spoilt, _shifts_of(row_of, col_of, sy, source.y, hr, distinct, hi - lo), valid)
     return _Columns(src, row_of, col_of, valid, a, np.zeros(k_count, np.bool_))
 
 
 @numba.njit(**_JIT)
 def _shifts_of(row_of, col_of, sy, y, hr, distinct, span):
-    """(distinct, span + 1) bool: which columns ``col_of`` (in [0, span])
-    the poses read each distinct row at; a NaN at column c of row q spoils
-    pixel c - s of every pose reading q at s."""
+    """(distinct, span + 1) bool: at which columns ``col_of`` (in [0, span])
+    the poses read each distinct row."""
     shifts = np.zeros((distinct, span + 1), np.bool_)
     for k in range(row_of.shape[0]):
         if 0 <= y - sy[k] < hr:
             shifts[row_of[k], col_of[k]] = True
     return shifts
+
+
+@numba.njit(**_JIT)
+def _mark_no_data(good, spoilt, shifts, valid):
+    """``valid`` (N,) False at every pixel some pose reads from a no-data
+    pixel: pixel j of a pose reading distinct row q at column s is
+    ``good[q, j + s]``.  The ``spoilt`` rows read at every shift any row is
+    read at (the usual case: the lattice's tx offsets) are ANDed together
+    first, so the shifts are applied once for all of them; each other
+    spoilt row applies its own."""
+    n = valid.shape[0]
+    distinct, span = shifts.shape
+    every = np.zeros(span, np.bool_)
+    for q in range(distinct):
+        for s in range(span):
+            every[s] |= shifts[q, s]
+    common = np.ones(good.shape[1], np.bool_)
+    for q in range(distinct):
+        if not spoilt[q]:
+            continue
+        usual = True
+        for s in range(span):
+            usual &= shifts[q, s] == every[s]
+        for s in range(span):
+            if usual:
+                break
+            if shifts[q, s]:
+                for j in range(n):
+                    valid[j] &= good[q, j + s]
+        if usual:
+            for c in range(good.shape[1]):
+                common[c] &= good[q, c]
+    for s in range(span):
+        if every[s]:
+            for j in range(n):
+                valid[j] &= common[j + s]
 
 
 @numba.njit(**_SUMS)

@@ -128,10 +128,11 @@ def test_admit_worst_picks_the_most_negative_gradients(full):
 # ------------------------------------------------ columns read from pre-warped rows
 
 
-def _stack_and_gather(seed, nan_share, dxs=range(-3, 4)):
+def _stack_and_gather(seed, nan_share, dxs=range(-3, 4), keep=1.0):
     """A stack of pre-warped images with no-data, and a lattice of poses
     reading it (slots by the other axis, whole-pixel shifts ``dxs``), some of
-    them beyond the stack's columns."""
+    them beyond the stack's columns; ``keep`` < 1: a random share of the
+    poses only, so that rows are read at different sets of shifts."""
     rng = np.random.default_rng(seed)
     stack = rng.uniform(0.1, 0.9, (5, 40, 90)).astype(np.float32)
     stack[rng.random(stack.shape) < nan_share] = np.nan
@@ -139,17 +140,19 @@ def _stack_and_gather(seed, nan_share, dxs=range(-3, 4)):
     for rot in range(3):
         for dy in range(-2, 3):
             for dx in dxs:
-                slot.append(1 + rot)
-                shift_y.append(dy)
-                shift_x.append(dx + (8 if seed % 2 else 0))
+                if dx == dxs[0] or rng.random() < keep:  # every row read at one shift at least
+                    slot.append(1 + rot)
+                    shift_y.append(dy)
+                    shift_x.append(dx + (8 if seed % 2 else 0))
     return stack, np.array(slot), np.array(shift_y), np.array(shift_x)
 
 
-@pytest.mark.parametrize("seed, nan_share, dxs", [(0, 0.0, range(-3, 4)), (1, 0.0, range(-3, 4)),
-                                                 (2, 0.002, range(-3, 4)), (3, 0.01, range(-3, 4)),
-                                                 (4, 0.01, (-5, -2, 0, 4)), (5, 0.02, (-9, -1, 3)),
-                                                 (7, 0.004, (-12, 0, 12))])
-def test_lattice_columns_equal_gathered_rows(seed, nan_share, dxs):
+@pytest.mark.parametrize("seed, nan_share, dxs, keep", [(0, 0.0, range(-3, 4), 1.0), (1, 0.0, range(-3, 4), 1.0),
+                                                 (2, 0.002, range(-3, 4), 1.0), (3, 0.01, range(-3, 4), 1.0),
+                                                 (4, 0.01, (-5, -2, 0, 4), 1.0), (5, 0.02, (-9, -1, 3), 1.0),
+                                                 (7, 0.004, (-12, 0, 12), 1.0), (8, 0.01, range(-3, 4), 0.5),
+                                                 (9, 0.02, (-6, -1, 0, 5), 0.6)])
+def test_lattice_columns_equal_gathered_rows(seed, nan_share, dxs, keep):
     """Each pose's column read from the distinct pre-warped rows equals the
     gathered row (:func:`_gather_row`), the valid pixels are the same (no-data,
     columns beyond the stack, the capture's own no-data), and the gradient
@@ -159,7 +162,11 @@ def test_lattice_columns_equal_gathered_rows(seed, nan_share, dxs):
     from rsmb.ops.registration._propagate_kernels import _Gather, _lattice_columns, _Source
     from rsmb.ops.registration._rowsolve import _column, _dense, _gradient
 
-    stack, slot, shift_y, shift_x = _stack_and_gather(seed, nan_share, dxs)
+    stack, slot, shift_y, shift_x = _stack_and_gather(seed, nan_share, dxs, keep)
+    read_at = {}
+    for k in range(len(slot)):
+        read_at.setdefault((slot[k], shift_y[k]), set()).add(shift_x[k])
+    assert (len({frozenset(v) for v in read_at.values()}) > 1) == (keep < 1)  # rows read at different shifts
     n, x0, y = 80, 6, 20
     rng = np.random.default_rng(50 + seed)
     g_valid = rng.random(n) > 0.05
