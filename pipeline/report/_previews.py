@@ -200,7 +200,9 @@ def _raster_reader(ds):
 
 def _warp_preview(grids, capture, factor, shape):
     """The reference set on the capture's grid coarsened by ``factor``: each
-    file resampled (``average``) where the files before it left no data."""
+    file resampled (``average``) where the files before it left no data.  A
+    set of gray files stays one band, stretched as the three copies of it a
+    colour preview draws (:func:`_to_rgba`'s ``copies``)."""
     import rasterio
     from rasterio.transform import Affine
     from rasterio.warp import Resampling, reproject
@@ -216,21 +218,28 @@ def _warp_preview(grids, capture, factor, shape):
                       dst_transform=capture.affine @ Affine.scale(factor), dst_crs=capture.crs, dst_nodata=np.nan,
                       resampling=Resampling.average)
             eight_bit &= ds.dtypes[bands[0] - 1] == "uint8"
+        if out is not None and len(out) != len(dest):  # gray so far, a colour file now: gray as three bands
+            out, dest = (np.repeat(out, 3, axis=0), dest) if len(out) == 1 else (out, np.repeat(dest, 3, axis=0))
         if out is None:
-            out = dest if len(bands) == 3 else np.repeat(dest[:1], 3, axis=0)
+            out = dest
         else:
             fill = ~np.isfinite(out).all(axis=0) & np.isfinite(dest).all(axis=0)
-            out[:, fill] = (dest if len(bands) == 3 else np.repeat(dest[:1], 3, axis=0))[:, fill]
-    return _to_rgba(out, eight_bit)
+            out[:, fill] = dest[:, fill]
+    return _to_rgba(out, eight_bit, copies=3 if len(out) == 1 else 1)
 
 
-def _to_rgba(bands, eight_bit):
-    """``(n, h, w)`` float bands (NaN: no data) -> uint8 RGBA ``(h, w, 4)``."""
+def _to_rgba(bands, eight_bit, *, copies=1):
+    """``(n, h, w)`` float bands (NaN: no data) -> uint8 RGBA ``(h, w, 4)``.
+
+    One band is gray: drawn in the three colours.  ``copies``: how many
+    identical bands the ``bands`` given stand for, which the stretch of an
+    image that is not 8-bit counts (its percentiles are those of every copy:
+    a gray reference set is stretched as the three bands it is drawn in)."""
     valid = np.isfinite(bands).all(axis=0)
     if eight_bit:
         scaled = bands + 0.5
     else:
-        lo, hi = np.percentile(bands[:, valid], _STRETCH) if valid.any() else (0.0, 1.0)
+        lo, hi = _percentiles_of_copies(bands[:, valid], _STRETCH, copies) if valid.any() else (0.0, 1.0)
         scaled = (bands - lo) * (255.0 / max(float(hi - lo), 1e-12))
         scaled += 0.5
     # in place on the one new array (the same values as np.clip(np.nan_to_num(s, nan=0) + 0.5, 0, 255)):
@@ -239,3 +248,21 @@ def _to_rgba(bands, eight_bit):
     rgb = np.clip(scaled, 0, 255, out=scaled).astype(np.uint8)
     rgb = np.repeat(rgb, 3, axis=0) if rgb.shape[0] == 1 else rgb
     return np.concatenate([np.moveaxis(rgb, 0, -1), (valid * 255).astype(np.uint8)[..., None]], axis=-1)
+
+
+def _percentiles_of_copies(values, q, copies=1):
+    """``np.percentile(np.tile(values, copies), q)`` (numpy's default,
+    ``linear``) without the copies: the order statistic ``j`` of the copies
+    is the values' ``j // copies``, so each percentile needs two order
+    statistics of ``values`` (one partition of them, not of ``copies`` times
+    as many), interpolated by numpy itself (``np.quantile`` of the pair at
+    the same fraction), the same bytes as numpy's answer.  Written for the
+    gray reference previews, stretched as three copies: numpy's partition of
+    the copies was most of a 1-MP preview's stretch."""
+    values = np.asarray(values).ravel()
+    n = values.size * copies
+    virtual = (n - 1) * np.true_divide(q, 100)  # numpy's virtual index of the linear method
+    below = np.floor(virtual).astype(np.intp)
+    above = np.minimum(below + 1, n - 1)
+    part = np.partition(values, np.unique(np.concatenate([below, above]) // copies))
+    return np.array([np.quantile(part[[b // copies, a // copies]], v - b) for v, b, a in zip(virtual, below, above)])

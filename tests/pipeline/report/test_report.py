@@ -601,6 +601,89 @@ def test_georeferenced_reference_preview_is_on_the_capture_grid(tmp_path):
     assert group["preview_reference"].attrs["frame"].startswith("ground")
 
 
+@pytest.mark.parametrize("copies", [1, 2, 3])
+@pytest.mark.parametrize("n", [1, 2, 5, 200, 4097])
+def test_percentiles_of_copies_are_numpys_of_the_copies(n, copies):
+    """The stretch's percentiles of ``copies`` copies of some values, computed
+    from the values alone, are numpy's percentiles of the copies to the byte
+    (ties, integers, negative values, the ends and the middle)."""
+    from rsmb.pipeline.report._previews import _percentiles_of_copies
+
+    rng = np.random.default_rng(n * 10 + copies)
+    for values in (rng.random(n).astype(np.float32), np.floor(rng.random(n) * 5).astype(np.float32),
+                   np.floor(rng.random(n) * 65535).astype(np.float32), (rng.random(n) - 0.5) * 1e6):
+        for q in ((0.5, 99.5), (0.0, 100.0), (25.0, 50.0, 75.0)):
+            expected = np.percentile(np.tile(values, copies), q)
+            found = _percentiles_of_copies(values, q, copies)
+            assert found.dtype == expected.dtype and found.tobytes() == expected.tobytes(), (values, q)
+
+
+def test_gray_reference_set_preview_is_its_three_band_stretch(tmp_path):
+    """A 16-bit gray reference set of two files (no data where the first one
+    ends, filled by the second) and then a colour file: the preview is the
+    three-band computation (the gray drawn as three equal bands, stretched by
+    the percentiles of all three) to the byte."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    from rsmb import tiles
+    from rsmb.pipeline.report import _previews
+    from rsmb.pipeline.report._previews import read_preview, write_previews
+
+    rng = np.random.default_rng(8)
+    kw = dict(driver="GTiff", crs="EPSG:32633", transform=from_origin(500000, 4000000, 0.5, 0.5))
+    gray = rng.integers(500, 60000, (90, 120), dtype=np.uint16)
+    files = []
+    for k, cols in enumerate((slice(0, 70), slice(50, 120))):
+        data = np.zeros_like(gray)
+        data[:, cols] = gray[:, cols] + k
+        with rasterio.open(tmp_path / f"g{k}.tif", "w", height=90, width=120, count=1, dtype="uint16", nodata=0,
+                           **kw) as ds:
+            ds.write(data, 1)
+        files.append(str(tmp_path / f"g{k}.tif"))
+    with rasterio.open(tmp_path / "cap.tif", "w", height=90, width=100, count=1, dtype="uint16", **kw) as ds:
+        ds.write(gray[:, :100], 1)
+
+    def three_bands(grids, capture, factor, shape):  # the computation before gray stayed one band
+        from rasterio.transform import Affine
+        from rasterio.warp import Resampling, reproject
+
+        out = None
+        for grid in grids:
+            with rasterio.open(grid.path) as ds:
+                dest = np.full((1,) + shape, np.nan, np.float32)
+                reproject(rasterio.band(ds, [1]), dest, src_transform=ds.transform, src_crs=ds.crs,
+                          src_nodata=ds.nodata, dst_transform=capture.affine @ Affine.scale(factor),
+                          dst_crs=capture.crs, dst_nodata=np.nan, resampling=Resampling.average)
+            dest = np.repeat(dest, 3, axis=0)
+            if out is None:
+                out = dest
+            else:
+                fill = ~np.isfinite(out).all(axis=0) & np.isfinite(dest).all(axis=0)
+                out[:, fill] = dest[:, fill]
+        valid = np.isfinite(out).all(axis=0)
+        lo, hi = np.percentile(out[:, valid], (0.5, 99.5))
+        scaled = np.clip(np.nan_to_num((out - lo) * (255.0 / max(float(hi - lo), 1e-12)) + 0.5, nan=0.0), 0, 255)
+        return np.concatenate([np.moveaxis(scaled.astype(np.uint8), 0, -1),
+                               (valid * 255).astype(np.uint8)[..., None]], axis=-1)
+
+    pairing = tiles.pair_images(files, str(tmp_path / "cap.tif"))
+    group = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
+    write_previews(group, pairing, side=50)  # factor 2
+    before, factor = read_preview(group, "preview_reference")
+    expected = three_bands(pairing.reference_grids, pairing.grid, factor, before.shape[:2])
+    assert (before[..., 3] == 255).mean() > 0.9 and np.unique(before[..., 0]).size > 100
+    assert np.array_equal(before, expected)
+    # a colour file after the gray ones: three bands from there on, the same preview as all three-band
+    rgb = np.stack([gray, gray // 2, gray // 3])
+    with rasterio.open(tmp_path / "c.tif", "w", height=90, width=120, count=3, dtype="uint16", **kw) as ds:
+        ds.write(rgb)
+    mixed = _previews._warp_preview(tiles.pair_images(files + [str(tmp_path / "c.tif")],
+                                                      str(tmp_path / "cap.tif")).reference_grids,
+                                    pairing.grid, factor, before.shape[:2])
+    assert np.array_equal(mixed, before)  # the gray files cover everything: the colour file fills nothing
+
+
 def test_detect_store_keeps_previews_and_the_report_shows_them(store, tmp_path):
     """``rsmb detect`` stores both previews (the synthetic pair is 16-bit gray:
     stretched gray, same size); the report draws before_after.jpg from them,
