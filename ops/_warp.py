@@ -167,11 +167,29 @@ def _gather_row(stack, slot, shift_y, shift_x, y, x0, out):
 def _warp_into(src, poses6, focal, cx, cy, oy, ox, out):
     """``out`` (R, W) = rows ``oy ..`` (columns ``ox ..``) of ``src`` warped by
     ``poses6`` (1, 6): one pose for every row, or (R, 6): row ``q`` by its own
-    pose; NaN where a pose samples outside ``src`` or nodata."""
+    pose; NaN where a pose samples outside ``src`` or nodata.
+
+    The arithmetic of :func:`_build_row` with one pose, written straight
+    into ``out``; where the pose keeps the image plane (no rx, ry: the
+    homography's last row is (0, 0, 1)) its division by 1 is left out, which
+    changes no bit."""
     rows, width = out.shape
-    buf = np.empty((1, width), dtype=np.float32)
+    m, tx, ty, sc = _inverse_map(poses6[0], focal, cx, cy)
     for q in range(rows):
-        p = 0 if poses6.shape[0] == 1 else q
-        v = _build_row(src, oy + q, ox, poses6[p:p + 1], focal, cx, cy, buf)
-        for j in range(width):
-            out[q, j] = buf[0, j] if v[j] else np.nan
+        if poses6.shape[0] > 1:
+            m, tx, ty, sc = _inverse_map(poses6[q], focal, cx, cy)
+        y, row = oy + q, out[q]
+        uy = (y - cy - ty) / sc
+        ux0 = (ox - cx - tx) / sc
+        du = 1.0 / sc
+        h0 = m[0] * ux0 + m[1] * uy + m[2]
+        h1 = m[3] * ux0 + m[4] * uy + m[5]
+        h2 = m[6] * ux0 + m[7] * uy + m[8]
+        d0, d1, d2 = m[0] * du, m[3] * du, m[6] * du
+        if d2 == 0.0 and h2 == 1.0:
+            for j in range(width):
+                row[j] = _bilinear(src, (h0 + j * d0) + cx, (h1 + j * d1) + cy)
+        else:
+            for j in range(width):
+                inv = 1.0 / (h2 + j * d2)
+                row[j] = _bilinear(src, (h0 + j * d0) * inv + cx, (h1 + j * d1) * inv + cy)
