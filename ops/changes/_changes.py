@@ -494,9 +494,24 @@ def sample_at(values, rows, cols, *, fill):
     -------
     ndarray, shape (Hr, Wr), dtype of ``values``
     """
-    inside = rows >= 0
-    out = np.full(rows.shape, fill, dtype=values.dtype)
-    out[inside] = values[rows[inside], cols[inside]]
+    return _gather(values, *_flat_index(rows, cols, np.shape(values)[1]), fill)
+
+
+def _flat_index(rows, cols, width):
+    """Indices of :func:`reference_lookup` into a raveled array of ``width``
+    columns (0 where outside), and where they are outside: computed once for
+    every array carried by the same lookup."""
+    outside = rows < 0
+    flat = rows.astype(np.intp) * int(width) + cols
+    flat[outside] = 0
+    return flat, outside
+
+
+def _gather(values, flat, outside, fill):
+    """``values`` at raveled indices ``flat``, ``fill`` where ``outside``
+    (one ``np.take``: a boolean-masked fancy index costs several passes)."""
+    out = np.take(np.ascontiguousarray(values).reshape(-1), flat)
+    out[outside] = fill
     return out
 
 
@@ -600,9 +615,10 @@ def to_ground(mask, score, parallax, trajectory, *, axes, camera, reference_shap
     rows, cols = reference_lookup(trajectory, axes=axes, camera=camera, reference_shape=reference_shape,
                                   distorted_shape=np.shape(mask), reference_origin_yx=reference_origin_yx,
                                   distorted_origin_yx=distorted_origin_yx)
-    return GroundFrame(sample_at(np.asarray(mask, np.uint8), rows, cols, fill=np.uint8(NO_EVIDENCE)),
-                       sample_at(np.asarray(score, np.float32), rows, cols, fill=np.float32(np.nan)),
-                       sample_at(np.asarray(parallax, np.uint8), rows, cols, fill=np.uint8(NO_EVIDENCE)))
+    index = _flat_index(rows, cols, np.shape(mask)[1])
+    return GroundFrame(_gather(np.asarray(mask, np.uint8), *index, np.uint8(NO_EVIDENCE)),
+                       _gather(np.asarray(score, np.float32), *index, np.float32(np.nan)),
+                       _gather(np.asarray(parallax, np.uint8), *index, np.uint8(NO_EVIDENCE)))
 
 
 @dataclass(frozen=True)

@@ -84,6 +84,18 @@ def test_to_ground_carries_mask_score_and_parallax_and_marks_what_was_not_seen(b
     assert np.array_equal(ground.mask == 255, np.isnan(ground.score))
 
 
+def test_sample_at_is_the_fancy_index_with_fill_outside():
+    """Any lookup, on a window wider than tall and not contiguous: each
+    ground pixel takes ``values[rows, cols]``, ``fill`` where rows is -1."""
+    rng = np.random.default_rng(11)
+    values = rng.random((40, 70)).astype(np.float32)[:, ::2]  # (40, 35), a strided view
+    rows = rng.integers(-1, 40, (23, 31)).astype(np.int32)
+    cols = np.where(rows >= 0, rng.integers(0, 35, rows.shape), -1).astype(np.int32)
+    out = ops.sample_at(values, rows, cols, fill=np.float32(np.nan))
+    expected = np.where(rows >= 0, values[np.maximum(rows, 0), np.maximum(cols, 0)], np.nan)
+    np.testing.assert_array_equal(out, expected)
+    assert out.dtype == np.float32 and out.shape == rows.shape
+
 
 def test_rolling_shutter_trajectory_shifts_each_row_by_its_own_pose(blobs):
     """tx growing by 0.37 px per row: reference row v is carried by row v's pose."""
