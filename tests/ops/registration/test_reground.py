@@ -86,3 +86,32 @@ def test_a_real_turn_of_the_path_is_kept():
                        threshold=_threshold(reg, distorted))
     assert _tx_error(out, pair, BAND).max() < 0.5  # still on the turn: not flattened onto the path around it
     assert np.abs(out.trajectory[BAND, 0] - before[BAND, 0]).max() < 0.3
+
+
+def test_outliers_are_the_large_components_grown_by_the_rim():
+    """The candidates that re-grounding masks: the components of at least
+    ``min_area`` pixels above the threshold, dilated by a square of
+    ``2 * RIM_PX + 1`` px that the window's edge cuts (scipy's
+    binary_dilation, border empty), small components and invalid pixels left out."""
+    from types import SimpleNamespace
+
+    from scipy import ndimage
+
+    from rsmb.ops.changes._changes import large_components
+    from rsmb.ops.registration._reground import RIM_PX, _outliers
+
+    rng = np.random.default_rng(5)
+    chi = np.zeros((61, 47), np.float32)
+    chi[0:6, 0:5] = 0.5  # a large component in the corner: its rim is cut by two edges
+    chi[30:34, 20:26] = -0.4  # a large one inside
+    chi[50, 40] = 0.9  # a single pixel: too small
+    chi += rng.normal(0.0, 0.01, chi.shape).astype(np.float32)
+    valid = np.ones(chi.shape, bool)
+    valid[31, :] = False
+    reg = SimpleNamespace(chi=chi, valid=valid)
+    out = _outliers(reg, 0.1, 10)
+    candidates = (np.abs(chi) > 0.1) & valid
+    size = 2 * RIM_PX + 1
+    expected = ndimage.binary_dilation(large_components(candidates, 10), structure=np.ones((size, size), bool))
+    np.testing.assert_array_equal(out, expected)
+    assert out.dtype == bool and out[0, 0] and out[35, 28] and not out[50, 40] and out.sum() > 100
