@@ -532,7 +532,9 @@ def _iterate(cols, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=Tru
     hold there; then one pass over every pose confirms them or admits its
     worst violators.  The poses that end with zero weight (most of a row's
     neighbourhood) are then checked a few times per solve instead of at every
-    iteration.  False: every iteration passes over every pose."""
+    iteration; a warm start is first solved on its own support, so that a
+    row whose optimum keeps its neighbour's support passes over every pose
+    once, to confirm it.  False: every iteration passes over every pose."""
     k_count, n = cols.a.shape
     r = _residual(cols, g, w)
     grad = np.empty(k_count)
@@ -553,6 +555,18 @@ def _iterate(cols, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=Tru
     pick = np.empty(max(max_add, 1), dtype=np.int64)
     cache = _gram_cache(k_count, min(k_count, GRAM_POOL))
     m = 0
+    if restricted:
+        # a warm start is first solved on its own support: a row whose
+        # support is its neighbour's (most rows) then needs one pass over
+        # every pose, the one that confirms it
+        for k in range(k_count):
+            if w[k] > 0.0:
+                idx[m] = k
+                m += 1
+        if m > 0:
+            full = False
+            for k in range(k_count):
+                seen[k] = w[k] > 0.0
     for it in range(max_outer):
         if full:
             _gradient(cols, r, lam, delta, grad)

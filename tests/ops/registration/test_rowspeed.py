@@ -87,6 +87,34 @@ def test_propagated_rows_match_cvxpy(rows):
         assert found[q][0] >= exact.objective * (1 - 1e-6) - 1e-12
 
 
+def test_warm_starts_on_a_wrong_support_reach_the_optimum(rows):
+    """A warm start is first solved on its own support: a support that
+    lacks the optimum's heaviest pose and holds a far one instead still ends
+    at the cold start's objective (1e-9) and eq. 13's optimum (cvxpy, 1e-6)."""
+    problems, params = rows[0]
+    delta = 0.5 * params.lambda_chi
+    for q in (3, 20):
+        a, g, valid = problems[q]
+        w = np.zeros(a.shape[0])
+        obj, _, _, status = _solve_huber_nn(a, g, w, params.lambda_w, delta, params.tol, params.max_outer,
+                                            params.max_add)
+        assert status == SOLVED
+        far = np.abs(np.arange(len(w)) - np.argmax(w))  # in lattice order: another corner of the grid
+        far[w > 0] = -1
+        w0 = w.copy()
+        w0[np.argmax(w)] = 0.0
+        w0[np.argmax(far)] = 0.5 * w.max()
+        assert (w0 > 0).sum() >= 1 and not np.array_equal(w0 > 0, w > 0)
+        obj2, _, _, status2 = _solve_huber_nn(a, g, w0, params.lambda_w, delta, params.tol, params.max_outer,
+                                              params.max_add)
+        assert status2 == SOLVED
+        assert obj2 == pytest.approx(obj, rel=1e-9)
+        exact = solve_row_exact(a.T, g, lambda_w=params.lambda_w, lambda_chi=params.lambda_chi,
+                                weights=valid.astype(np.float64))
+        assert obj2 <= exact.objective * (1 + 1e-6) + 1e-12
+        assert obj2 >= exact.objective * (1 - 1e-6) - 1e-12
+
+
 def test_working_sets_larger_than_the_product_cache(rows):
     """Admitting every violator at once (the re-solve's setting) makes working
     sets larger than the cache of column products holds: they are computed
