@@ -32,7 +32,7 @@ from .changes._changes import (
     changes_to_reference,
     score_histogram,
 )
-from .changes._bounds import bounded_score, model_bounds
+from .changes._bounds import ModelBounds, bounded_score, model_bounds
 from .depth._depthsolve import depth_step
 from .depth._layers import LayerResult
 from .registration._params import RegistrationParams
@@ -193,8 +193,12 @@ def _bounded(capture, intensity, result, bounds, params):
     if bounds is None or not need.any():
         return None
     scaled, cap_high, cap_low = _clipped_on_scale(capture, intensity, intensity.capture_clip)
-    chi = bounded_score(scaled, bounds, cap_high, cap_low, lambda_chi=params.lambda_chi)
-    return np.where(need, chi, np.nan), bounds.model
+    # elementwise: scored on the pixels that need it only (a few per cent of the window)
+    chi = np.full(need.shape, np.nan, np.float32)
+    chi[need] = bounded_score(scaled[need], ModelBounds(bounds.model[need], bounds.high_share[need],
+                                                        bounds.low_share[need]), cap_high[need], cap_low[need],
+                              lambda_chi=params.lambda_chi)
+    return chi, bounds.model
 
 
 def _clip_bounds(result, capture, reference, intensity, camera, origins):

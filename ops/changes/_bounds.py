@@ -94,7 +94,9 @@ def model_bounds(registration, reference, high, low, mask, *, camera, reference_
     """
     rows = _RowPoses.of(registration, mask.shape[0])
     focal, cx, cy, dy, dx = _geometry(camera, reference_origin_yx, distorted_origin_yx)
-    state = np.where(np.asarray(high, bool), 1, np.where(np.asarray(low, bool), 2, 0)).astype(np.int8)
+    state = np.zeros(np.shape(high), np.int8)  # 1 saturated (first), 2 at 0, else 0
+    state[np.asarray(low, bool)] = 2
+    state[np.asarray(high, bool)] = 1
     shape = np.shape(mask)
     model = np.full(shape, np.nan, np.float32)
     high_share, low_share = np.full(shape, np.nan, np.float32), np.full(shape, np.nan, np.float32)
@@ -160,11 +162,15 @@ def bounded_score(capture, bounds, capture_high, capture_low, *, lambda_chi):
     soft-thresholded as eq. 13's ``chi`` (:func:`optimal_chi`), positive where
     the capture is brighter, 0 where they meet, NaN where they say nothing.
 
+    Elementwise: the arrays may be any one shape, such as the pixels of a
+    window that need the interval, gathered.
+
     Parameters
     ----------
     capture : ndarray, shape (H, W)
         The capture on the common scale (clipped pixels at their values).
     bounds : ModelBounds
+        Its arrays of the same shape as ``capture``.
     capture_high, capture_low : ndarray of bool, shape (H, W)
         Capture pixels at its saturation value, at its floor.
     lambda_chi : float

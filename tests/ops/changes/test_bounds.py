@@ -184,3 +184,24 @@ def test_pixels_beside_a_clipped_one_keep_their_fit_through_the_method():
     assert np.isfinite(found.score[given]).all()
     assert not found.parallax.any()
     assert not ops.method_changes(found, camera=pair.camera).mask.any()
+
+
+def test_bounded_score_is_elementwise_so_gathered_pixels_score_as_in_the_window():
+    """The method scores only the pixels that need the interval, gathered
+    into one dimension: each gets the value it gets in the whole window,
+    clipped captures, touched supports, NaN models and silent pixels alike."""
+    rng = np.random.default_rng(8)
+    shape = (30, 40)
+    g = rng.uniform(-0.1, 1.1, shape).astype(np.float32)
+    model = rng.uniform(0.0, 1.0, shape).astype(np.float32)
+    model[rng.random(shape) < 0.1] = np.nan
+    high = np.where(rng.random(shape) < 0.3, rng.random(shape), 0.0).astype(np.float32)
+    low = np.where(rng.random(shape) < 0.3, rng.random(shape), 0.0).astype(np.float32)
+    bounds = ops.ModelBounds(model, high, low)
+    at_high, at_low = g >= 1.0, g <= 0.0
+    whole = ops.bounded_score(g, bounds, at_high, at_low, lambda_chi=0.02)
+    need = rng.random(shape) < 0.2
+    part = ops.bounded_score(g[need], ops.ModelBounds(model[need], high[need], low[need]), at_high[need], at_low[need],
+                             lambda_chi=0.02)
+    np.testing.assert_array_equal(part, whole[need])
+    assert part.dtype == np.float32 and np.isnan(part).any() and (part == 0).any() and (part != 0).any()
