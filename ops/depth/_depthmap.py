@@ -17,7 +17,12 @@ around its best one: :attr:`DepthMapParams.stride`):
   :attr:`DepthMapParams.gain` times it): ties and noise keep the plane;
 - only where the plane leaves unexplained structure: pixels with no residual
   above half the threshold within the window keep the plane (flat, well
-  registered scenes cost nothing).
+  registered scenes cost nothing);
+- everywhere only in a scene with depth: the windows of pixels above the
+  threshold (the change candidates) are swept first, and only where a depth
+  brings at least :attr:`DepthMapParams.min_share` of the valid pixels from
+  above the threshold to below it are the other active pixels swept; else
+  they keep the plane (a flat scene's residual is noise no depth explains).
 
 The output is still the model's: at every pixel the reference warped and
 blurred by the row's estimated path at one depth, times the row's gain.  New
@@ -60,6 +65,10 @@ class DepthMapParams:
     gain : float
         A depth replaces the plane where its window cost is at most this
         fraction of the plane's.
+    min_share : float
+        Share of the valid pixels that a depth must bring from above the
+        threshold to below it for every active pixel to be swept (else only
+        the windows of pixels above the threshold).
     """
 
     max_inverse_depth: float = 3.0
@@ -67,6 +76,7 @@ class DepthMapParams:
     stride: int = 4
     window: int = 7
     gain: float = 0.85
+    min_share: float = 0.0005
 
 
 @dataclass
@@ -136,18 +146,16 @@ def depth_map(registration, reference, distorted, *, camera, threshold, referenc
     rows = _RowPoses.of(registration, g.shape[0])
     step = 1.0 / max(rows.largest_translation(), 1.0)
     count = int(min(params.max_depths, math.floor(params.max_inverse_depth / step) + 1))
-    qs = np.linspace(0.0, params.max_inverse_depth, max(count, 2))
-    render_mask = cv2.dilate(active.astype(np.uint8), np.ones((params.window, params.window), np.uint8)) > 0
+    qs = np.linspace(0.0, params.max_inverse_depth, max(count, 2)).astype(np.float64)
     cost_plane = _window_cost(np.where(valid, residual, tau), tau, params.window)
-    best = np.full(g.shape, np.inf, np.float32)
-    chosen = np.full(g.shape, np.nan, np.float32)
-    depth = np.ones(g.shape, np.float32)
     scene = rows.scene(reference, _geometry(camera, reference_origin_yx, distorted_origin_yx))
-    render_mask = render_mask.astype(np.uint8)
-    fit = _Fit(np.ascontiguousarray(g), render_mask, active.astype(np.uint8), tau, int(params.window) // 2,
-               _spans(render_mask))
-    _sweep(scene, fit, qs.astype(np.float64), int(params.stride), _Best(best, chosen, depth, np.full(g.shape, -1)))
-    take = active & np.isfinite(chosen) & (best <= params.gain * cost_plane)
+    candidates = active & _active(residual, valid, 2.0 * tau, params.window)  # windows of pixels above tau
+    if not candidates.any():
+        return out
+    take, chosen, depth = _takes(scene, g, candidates, cost_plane, tau, qs, params)
+    explained = take & (residual > tau) & (np.abs(g - np.where(take, chosen, base)) <= tau)
+    if explained.sum() >= params.min_share * int(valid.sum()) and (active & ~candidates).any():
+        take, chosen, depth = _takes(scene, g, active, cost_plane, tau, qs, params)
     out.registered[take] = chosen[take]
     out.inverse_depth[take] = depth[take]
     r = g[take] - chosen[take]
@@ -155,6 +163,21 @@ def depth_map(registration, reference, distorted, *, camera, threshold, referenc
     out.explained = take & (residual > tau) & (np.abs(g - out.registered) <= tau)
     out.depths = len(qs)
     return out
+
+
+def _takes(scene, g, active, cost_plane, tau, qs, params):
+    """The sweep (:func:`_sweep`) over the ``active`` pixels: the pixels that
+    take a depth (window cost at most ``params.gain`` times the plane's), and
+    every active pixel's best value and inverse depth."""
+    render_mask = (cv2.dilate(active.astype(np.uint8), np.ones((params.window, params.window), np.uint8)) > 0)
+    render_mask = render_mask.astype(np.uint8)
+    best = np.full(g.shape, np.inf, np.float32)
+    chosen = np.full(g.shape, np.nan, np.float32)
+    depth = np.ones(g.shape, np.float32)
+    fit = _Fit(np.ascontiguousarray(g), render_mask, active.astype(np.uint8), tau, int(params.window) // 2,
+               _spans(render_mask))
+    _sweep(scene, fit, qs, int(params.stride), _Best(best, chosen, depth, np.full(g.shape, -1)))
+    return active & np.isfinite(chosen) & (best <= params.gain * cost_plane), chosen, depth
 
 
 def model_values(registration, reference, mask, *, camera, reference_origin_yx=(0, 0), distorted_origin_yx=(0, 0)):
@@ -395,7 +418,7 @@ def _sweep(scene, fit, qs, stride, best):
             _one_depth(scene, fit, qs[k], k, index, index, -1, scratch, best)
     if stride <= 1:
         return
-    lo, hi = _window_range(index, fit.active, fit.half)
+    lo, hi = _window_range(index, fit.active, fit.half, fit.spans)
     for k in range(count):
         if not (k % stride == 0 or k == count - 1):
             _one_depth(scene, fit, qs[k], k, lo, hi, stride, scratch, best)
@@ -454,15 +477,16 @@ def _one_depth(scene, fit, q, k, lo, hi, stride, scratch, best):
 
 
 @numba.njit(nogil=True, cache=True)
-def _window_range(index, active, half):
-    """Per pixel, the smallest and largest ``index`` of the active pixels in
-    its window (lo > hi where there are none)."""
+def _window_range(index, active, half, spans):
+    """Per pixel within the rows' ``spans`` (:func:`_spans`, holding every
+    active pixel), the smallest and largest ``index`` of the active pixels in
+    its window (lo > hi where there are none, and off the spans)."""
     height, width = index.shape
     big = np.iinfo(np.int64).max // 2
     row_lo = np.full((height, width), big, np.int64)
     row_hi = np.full((height, width), -big, np.int64)
     for i in range(height):
-        for j in range(width):
+        for j in range(spans[i, 0], spans[i, 1]):
             if active[i, j] != 0 and index[i, j] >= 0:
                 for d in range(max(j - half, 0), min(j + half, width - 1) + 1):
                     row_lo[i, d] = min(row_lo[i, d], index[i, j])
@@ -470,7 +494,7 @@ def _window_range(index, active, half):
     lo = np.full((height, width), big, np.int64)
     hi = np.full((height, width), -big, np.int64)
     for i in range(height):
-        for j in range(width):
+        for j in range(spans[i, 0], spans[i, 1]):
             for d in range(max(i - half, 0), min(i + half, height - 1) + 1):
                 lo[i, j] = min(lo[i, j], row_lo[d, j])
                 hi[i, j] = max(hi[i, j], row_hi[d, j])

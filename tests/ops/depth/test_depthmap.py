@@ -4,6 +4,8 @@ registered plane (METHOD.md section 3, item 8, extended to the whole residual).
 Raised structures are explained at about their depth; new objects are
 explained at none and are still detected."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -68,8 +70,8 @@ def test_raised_structures_are_explained_at_a_depth(raised):
 def test_new_objects_are_explained_at_no_depth(raised):
     pair, reg, plain, dense = raised
     assert not (dense.explained & pair.change_mask).any()
-    reg.registered[:], reg.chi[:] = dense.registered, dense.chi
-    after = ops.detect_changes(reg, pair.distorted, camera=pair.camera).mask
+    rerendered = dataclasses.replace(reg, registered=dense.registered, chi=dense.chi)  # the fixture's stays
+    after = ops.detect_changes(rerendered, pair.distorted, camera=pair.camera).mask
     roofs = pair.parallax_mask & ~pair.change_mask
     # the changes alone (roof pixels not counted): as well detected as on the plane
     before_counts = ops.confusion(plain.mask & ~roofs, pair.change_mask)
@@ -91,6 +93,36 @@ def test_without_parallax_the_plane_stays():
     reg.registered[:], reg.chi[:] = dense.registered, dense.chi
     after = ops.detect_changes(reg, pair.distorted, camera=pair.camera).mask
     assert ops.confusion(after, pair.change_mask).f_measure >= ops.confusion(plain.mask, pair.change_mask).f_measure - 0.005
+
+
+def test_a_flat_scene_is_swept_at_its_change_candidates_only():
+    """A depth explains too few of the pixels above the threshold: only their
+    windows are swept, where the whole sweep explains the same pixels;
+    everywhere else the plane stays."""
+    pair = ops.synthesize_pair(SHAPE, motion="inplane", exposure=EXPOSURE, changes=6, noise=0.002, seed=43,
+                               interpolation="cubic")
+    reg, plain, dense = _run(pair)
+    whole = ops.depth_map(reg, pair.reference, pair.distorted, camera=pair.camera, threshold=plain.threshold,
+                          params=ops.DepthMapParams(min_share=0.0))
+    ok = reg.valid & np.isfinite(reg.registered)
+    assert np.mean(whole.explained[ok]) < ops.DepthMapParams().min_share
+    above = ok & (np.abs(pair.distorted - reg.registered) > plain.threshold)
+    near = ndimage.binary_dilation(above, np.ones((7, 7), bool))
+    assert 0 < near.mean() < 0.2
+    np.testing.assert_array_equal(dense.registered[~near], reg.registered[~near])
+    assert (dense.inverse_depth[~near] == 1.0).all() and (whole.inverse_depth[~near] != 1.0).any()
+    np.testing.assert_array_equal(dense.explained, whole.explained)
+    # the fine pass's depth ranges come from the active neighbours, fewer here
+    assert np.mean(dense.inverse_depth[near] == whole.inverse_depth[near]) > 0.99
+
+
+def test_a_scene_with_depth_is_swept_whole(raised):
+    pair, reg, plain, dense = raised
+    whole = ops.depth_map(reg, pair.reference, pair.distorted, camera=pair.camera, threshold=plain.threshold,
+                          params=ops.DepthMapParams(min_share=0.0))
+    assert dense.depths == whole.depths > 0
+    np.testing.assert_array_equal(dense.inverse_depth, whole.inverse_depth)
+    np.testing.assert_array_equal(dense.registered, whole.registered)
 
 
 def test_no_residual_no_work():
