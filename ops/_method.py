@@ -114,14 +114,17 @@ def run_method(reference, capture, *, camera, params=None, changes=None, intensi
     result = register(ref, dist, camera=camera, params=params, distorted_valid=valid, prior=prior, slow=slow,
                       start=start, **origins)
     with clock.stage("score"):
-        threshold = _window_threshold(result, dist, changes)
-    result = reground(result, ref, dist, camera=camera, params=params, threshold=threshold,
-                      min_area=changes.min_area, distorted_valid=valid, **origins)
+        window = _window_histogram(result, dist)
+    result = reground(result, ref, dist, camera=camera, params=params,
+                      threshold=change_threshold(window, params=changes), min_area=changes.min_area,
+                      distorted_valid=valid, **origins)
     with clock.stage("score"):
         bounds = _clip_bounds(result, capture, reference, intensity, camera, origins)
-        result = _fitted_beside_clipped(result, distorted, bounds, params)
+        result, point = _fitted_beside_clipped(result, distorted, bounds, params)
+        if changes.layers:  # the depth steps' threshold: the window's residuals as re-grounded and fitted
+            window = _updated_histogram(window, result, dist, point)
     with clock.stage("depth"):
-        layers = _depth(result, ref, dist, camera, params, changes, origins)
+        layers = _depth(result, ref, dist, camera, params, changes, origins, change_threshold(window, params=changes))
     with clock.stage("score"):
         chi, model, known = layers.chi, layers.registered, result.valid
         bounded = _bounded(capture, intensity, result, bounds, params)
@@ -159,20 +162,33 @@ def _on_scale(values, intensity, name):
     return values if intensity is None else intensity.apply(values, name)
 
 
-def _window_threshold(result, capture, changes):
-    """The change threshold of the window's own residuals (a mosaic's is not known yet)."""
+def _window_histogram(result, capture):
+    """The histograms of the window's own residuals and ``|chi|``, whose
+    change threshold the window's steps use (a mosaic's is not known yet)."""
     residual = np.where(result.valid, capture - result.registered, 0.0)
-    hist = score_histogram(residual, np.abs(result.chi), result.valid)
-    return change_threshold(hist, params=changes)
+    return score_histogram(residual, np.abs(result.chi), result.valid)
 
 
-def _depth(result, reference, capture, camera, params, changes, origins):
+def _updated_histogram(window, result, capture, point):
+    """:func:`_window_histogram` of ``result`` from ``window``, that of the
+    registration before re-grounding and :func:`_fitted_beside_clipped`:
+    the counts add up over pixels, so when no row was re-grounded (the rows
+    left as they were) only the newly fitted pixels ``point`` (None: none)
+    are added; otherwise the window is counted again."""
+    if result.timings.get("regrounded_rows", 0):
+        return _window_histogram(result, capture)
+    if point is None:
+        return window
+    residual = (capture[point] - result.registered[point])[None, :]  # valid there: no where needed
+    return window + score_histogram(residual, np.abs(result.chi[point])[None, :], np.ones(residual.shape, bool))
+
+
+def _depth(result, reference, capture, camera, params, changes, origins, threshold):
     """Depth layers, the dense depth map and the rows re-solved at depth
-    (:func:`depth_step`) with the window's own threshold; the registration
+    (:func:`depth_step`) with the window's own ``threshold``; the registration
     as it is when ``changes.layers`` is off."""
     if not changes.layers:
         return LayerResult(np.zeros(result.valid.shape, bool), result.registered, result.chi)
-    threshold = _window_threshold(result, capture, changes)
     out, _, _ = depth_step(result, reference, capture, camera=camera, threshold=threshold,
                            space=params.resolved(camera).space, lambda_w=params.lambda_w,
                            lambda_chi=params.lambda_chi, **origins)
@@ -240,18 +256,19 @@ def _fitted_beside_clipped(result, distorted, bounds, params):
     fitted (the depth map charges a pixel without a model the threshold,
     so any depth would seem to explain the pixels around every clipped
     one).  ``distorted``: the capture on the common scale (NaN: clipped or
-    no-data); ``bounds``: :func:`_clip_bounds`."""
+    no-data); ``bounds``: :func:`_clip_bounds`.  Returns the registration
+    and the pixels given their model (None: none, the registration as it was)."""
     if bounds is None:
-        return result
+        return result, None
     point = (~result.valid & np.isfinite(distorted) & np.isfinite(bounds.model) & (bounds.high_share == 0)
              & (bounds.low_share == 0))
     if not point.any():
-        return result
+        return result, None
     registered, chi, valid = result.registered.copy(), result.chi.copy(), result.valid.copy()
     registered[point] = bounds.model[point]
     chi[point] = optimal_chi(distorted[point] - bounds.model[point], lambda_chi=params.lambda_chi)
     valid[point] = True
-    return replace(result, registered=registered, chi=chi, valid=valid)
+    return replace(result, registered=registered, chi=chi, valid=valid), point
 
 
 def _at_clip(values, levels):

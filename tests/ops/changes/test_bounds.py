@@ -205,3 +205,38 @@ def test_bounded_score_is_elementwise_so_gathered_pixels_score_as_in_the_window(
                              lambda_chi=0.02)
     np.testing.assert_array_equal(part, whole[need])
     assert part.dtype == np.float32 and np.isnan(part).any() and (part == 0).any() and (part != 0).any()
+
+
+def test_the_depth_steps_histogram_is_the_fitted_windows_counted_again():
+    """The histograms the depth steps' threshold comes from, updated from the
+    window's before re-grounding: the newly fitted pixels added when no row
+    was re-grounded, all counted again when one was; either way the counts
+    of the window as it is (residuals, ``|chi|``, valid pixels)."""
+    from types import SimpleNamespace
+
+    from rsmb.ops._method import _updated_histogram, _window_histogram
+
+    rng = np.random.default_rng(9)
+    shape = (24, 50)
+    capture = rng.random(shape).astype(np.float32)
+    valid = rng.random(shape) < 0.7
+    registered = np.where(valid, capture + rng.normal(0, 0.02, shape), np.nan).astype(np.float32)
+    chi = np.where(valid, rng.normal(0, 0.05, shape) * (rng.random(shape) < 0.2), 0.0).astype(np.float32)
+    before = SimpleNamespace(valid=valid, registered=registered, chi=chi, timings={"regrounded_rows": 0})
+    window = _window_histogram(before, capture)
+    point = ~valid & (rng.random(shape) < 0.5)
+    fitted = SimpleNamespace(valid=valid | point,
+                             registered=np.where(point, capture - 0.03, registered).astype(np.float32),
+                             chi=np.where(point, 0.02, chi).astype(np.float32), timings={"regrounded_rows": 0})
+    expected = _window_histogram(fitted, capture)
+    got = _updated_histogram(window, fitted, capture, point)
+    np.testing.assert_array_equal(got.residual, expected.residual)
+    np.testing.assert_array_equal(got.score, expected.score)
+    assert got.residual.sum() == (valid | point).sum() > window.residual.sum()
+    assert _updated_histogram(window, before, capture, None) is window
+    moved = SimpleNamespace(valid=fitted.valid, registered=fitted.registered.copy(), chi=fitted.chi,
+                            timings={"regrounded_rows": 1})
+    moved.registered[3] += np.float32(0.3)  # a re-grounded row
+    again = _updated_histogram(window, moved, capture, point)
+    np.testing.assert_array_equal(again.residual, _window_histogram(moved, capture).residual)
+    assert not np.array_equal(again.residual, expected.residual)
