@@ -64,6 +64,21 @@ def _bilinear(ref, u, v):
 
 
 @numba.njit(**_JIT)
+def _row_line(m, tx, ty, sc, y, x0, cx, cy):
+    """A pose's inverse map (:func:`_inverse_map`) along output row ``y``
+    from column ``x0``: ``h = m @ (ux, uy, 1)`` with ``ux = (x - cx - tx) /
+    sc`` is linear in the column offset ``j``, ``h = (h0, h1, h2) + j * (d0,
+    d1, d2)``, and the sample sits at ``(h0 / h2 + cx, h1 / h2 + cy)``."""
+    uy = (y - cy - ty) / sc
+    ux0 = (x0 - cx - tx) / sc
+    du = 1.0 / sc
+    h0 = m[0] * ux0 + m[1] * uy + m[2]
+    h1 = m[3] * ux0 + m[4] * uy + m[5]
+    h2 = m[6] * ux0 + m[7] * uy + m[8]
+    return h0, h1, h2, m[0] * du, m[3] * du, m[6] * du
+
+
+@numba.njit(**_JIT)
 def _build_row(ref, y, x0, poses6, focal, cx, cy, out):
     """Fill ``out`` (K, N) with row ``y`` of the reference warped by each pose.
 
@@ -76,14 +91,7 @@ def _build_row(ref, y, x0, poses6, focal, cx, cy, out):
     valid = np.ones(n, dtype=np.uint8)
     for k in range(k_count):
         m, tx, ty, sc = _inverse_map(poses6[k], focal, cx, cy)
-        uy = (y - cy - ty) / sc
-        # h = m @ (ux, uy, 1), ux = (x - cx - tx) / sc, linear in x
-        ux0 = (x0 - cx - tx) / sc
-        du = 1.0 / sc
-        h0 = m[0] * ux0 + m[1] * uy + m[2]
-        h1 = m[3] * ux0 + m[4] * uy + m[5]
-        h2 = m[6] * ux0 + m[7] * uy + m[8]
-        d0, d1, d2 = m[0] * du, m[3] * du, m[6] * du
+        h0, h1, h2, d0, d1, d2 = _row_line(m, tx, ty, sc, y, x0, cx, cy)
         for j in range(n):
             inv = 1.0 / (h2 + j * d2)
             u = (h0 + j * d0) * inv + cx
@@ -178,14 +186,8 @@ def _warp_into(src, poses6, focal, cx, cy, oy, ox, out):
     for q in range(rows):
         if poses6.shape[0] > 1:
             m, tx, ty, sc = _inverse_map(poses6[q], focal, cx, cy)
-        y, row = oy + q, out[q]
-        uy = (y - cy - ty) / sc
-        ux0 = (ox - cx - tx) / sc
-        du = 1.0 / sc
-        h0 = m[0] * ux0 + m[1] * uy + m[2]
-        h1 = m[3] * ux0 + m[4] * uy + m[5]
-        h2 = m[6] * ux0 + m[7] * uy + m[8]
-        d0, d1, d2 = m[0] * du, m[3] * du, m[6] * du
+        row = out[q]
+        h0, h1, h2, d0, d1, d2 = _row_line(m, tx, ty, sc, oy + q, ox, cx, cy)
         if d2 == 0.0 and h2 == 1.0:
             for j in range(width):
                 row[j] = _bilinear(src, (h0 + j * d0) + cx, (h1 + j * d1) + cy)
