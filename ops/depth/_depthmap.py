@@ -146,21 +146,23 @@ def depth_map(registration, reference, distorted, *, camera, threshold, referenc
     rows = _RowPoses.of(registration, g.shape[0])
     step = 1.0 / max(rows.largest_translation(), 1.0)
     count = int(min(params.max_depths, math.floor(params.max_inverse_depth / step) + 1))
-    qs = np.linspace(0.0, params.max_inverse_depth, max(count, 2)).astype(np.float64)
+    qs = np.linspace(0.0, params.max_inverse_depth, max(count, 2))
     cost_plane = _window_cost(np.where(valid, residual, tau), tau, params.window)
     scene = rows.scene(reference, _geometry(camera, reference_origin_yx, distorted_origin_yx))
     candidates = active & _active(residual, valid, 2.0 * tau, params.window)  # windows of pixels above tau
     if not candidates.any():
         return out
     take, chosen, depth = _takes(scene, g, candidates, cost_plane, tau, qs, params)
-    explained = take & (residual > tau) & (np.abs(g - np.where(take, chosen, base)) <= tau)
-    if explained.sum() >= params.min_share * int(valid.sum()) and (active & ~candidates).any():
+    if _explained(take, chosen, g, residual, tau).sum() >= params.min_share * int(valid.sum()) \
+            and (active & ~candidates).any():
+        # a scene with depth: swept whole, the candidates again (their fine
+        # pass reads their active neighbours' coarse depths)
         take, chosen, depth = _takes(scene, g, active, cost_plane, tau, qs, params)
     out.registered[take] = chosen[take]
     out.inverse_depth[take] = depth[take]
     r = g[take] - chosen[take]
     out.chi[take] = optimal_chi(r, lambda_chi=lambda_chi)
-    out.explained = take & (residual > tau) & (np.abs(g - out.registered) <= tau)
+    out.explained = _explained(take, chosen, g, residual, tau)
     out.depths = len(qs)
     return out
 
@@ -178,6 +180,12 @@ def _takes(scene, g, active, cost_plane, tau, qs, params):
                _spans(render_mask))
     _sweep(scene, fit, qs, int(params.stride), _Best(best, chosen, depth, np.full(g.shape, -1)))
     return active & np.isfinite(chosen) & (best <= params.gain * cost_plane), chosen, depth
+
+
+def _explained(take, chosen, g, residual, tau):
+    """The pixels above the threshold ``tau`` on the plane that a depth took
+    and brought below it."""
+    return take & (residual > tau) & (np.abs(g - chosen) <= tau)
 
 
 def model_values(registration, reference, mask, *, camera, reference_origin_yx=(0, 0), distorted_origin_yx=(0, 0)):
