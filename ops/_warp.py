@@ -141,33 +141,48 @@ def _gather_row(stack, slot, shift_y, shift_x, y, x0, out):
     the image warped by the rest of the pose at a shifted pixel.  NaN marks
     invalid data.  Returns uint8 (N,) validity as :func:`_build_row`.
     """
+    return _gather_valid(stack, slot, shift_y, shift_x, y, x0, out, np.ones(out.shape[1], np.bool_))
+
+
+@numba.njit(**_JIT)
+def _gather_valid(stack, slot, shift_y, shift_x, y, x0, out, keep):
+    """:func:`_gather_row` with the pixels ``keep`` (N,) bool leaves out
+    (the capture's invalid ones) invalid too: returns uint8 (N,), 1 where
+    ``keep`` holds and every pose reads a finite value, and ``out``'s columns
+    are zero wherever it is 0.
+
+    Each pose's pixels inside the image are copied as one run and checked
+    for NaN after (both loops vectorise); the columns found invalid are
+    zeroed at the end, row by row."""
     k_count, n = out.shape
     hr, wr = stack.shape[1], stack.shape[2]
-    valid = np.ones(n, dtype=np.uint8)
+    valid = np.empty(n, dtype=np.uint8)
+    for j in range(n):
+        valid[j] = 1 if keep[j] else 0
     for k in range(k_count):
         r = y - shift_y[k]
-        c0 = x0 - shift_x[k]
-        if r < 0 or r >= hr:
-            for j in range(n):
-                valid[j] = 0
+        if r < 0 or r >= hr:  # above or below the images: no pixel is valid (out is zeroed below)
+            valid[:] = 0
             continue
+        c0 = x0 - shift_x[k]
+        lo, hi = min(max(-c0, 0), n), max(min(wr - c0, n), 0)
+        lo = min(lo, hi)
+        for j in range(lo):
+            valid[j] = 0
+        for j in range(hi, n):
+            valid[j] = 0
         img = stack[slot[k], r]
-        for j in range(n):
-            c = c0 + j
-            if c < 0 or c >= wr:
-                valid[j] = 0
-                out[k, j] = 0.0
-            else:
-                v = img[c]
-                if math.isnan(v):
-                    valid[j] = 0
-                    out[k, j] = 0.0
-                else:
-                    out[k, j] = v
-    for j in range(n):
-        if valid[j] == 0:
-            for k in range(k_count):
-                out[k, j] = 0.0
+        row = out[k]
+        for j in range(lo, hi):
+            row[j] = img[c0 + j]
+        for j in range(lo, hi):
+            valid[j] &= np.uint8(row[j] == row[j])  # 0 on NaN
+    bad = np.nonzero(valid == 0)[0]
+    if bad.size:
+        for k in range(k_count):
+            row = out[k]
+            for j in bad:
+                row[j] = 0.0
     return valid
 
 

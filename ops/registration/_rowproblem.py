@@ -9,7 +9,7 @@ from .._oracle import solve_row_exact
 from .._timing import UNTIMED
 from ._propagate_kernels import _Settings
 from ._rowsolve import SOLVED, _solve_huber_nn
-from .._warp import _build_row, _gather_row, _warp_into
+from .._warp import _build_row, _gather_valid, _warp_into
 
 __all__ = []
 
@@ -210,14 +210,14 @@ class _RowProblem:
         for q, i in enumerate(rows):
             # write straight into the block's columns of this row
             buf = a[:, q * n:(q + 1) * n] if len(rows) > 1 else a
-            if self.gather:
+            if self.gather:  # the capture's invalid pixels zeroed in the same pass
                 slot, shift_y, shift_x, y = self.gather_args(i, index, poses, only_row=True)
-                v = _gather_row(self.stack, slot, shift_y, shift_x, y, self.margin, buf)
+                v = _gather_valid(self.stack, slot, shift_y, shift_x, y, self.margin, buf, self.dist_valid[i])
             else:
                 v = _build_row(self.ref, float(i + self.dy), float(self.dx), self.with_slow(poses6, i), self.focal,
                                self.cx, self.cy, buf)
             valid[q * n:(q + 1) * n] = (v != 0) & self.dist_valid[i]
-        if not self.dist_all_valid:
+        if not (self.dist_all_valid or self.gather):
             a[:, ~valid] = 0.0
         g = np.where(valid, self.dist[rows].ravel(), 0.0)
         return a, g, valid
