@@ -177,7 +177,7 @@ def _takes(scene, g, active, cost_plane, tau, qs, params):
     chosen = np.full(g.shape, np.nan, np.float32)
     depth = np.ones(g.shape, np.float32)
     fit = _Fit(np.ascontiguousarray(g), render_mask, active.astype(np.uint8), tau, int(params.window) // 2,
-               _spans(render_mask))
+               _runs(render_mask))
     _sweep(scene, fit, qs, int(params.stride), _Best(best, chosen, depth, np.full(g.shape, -1)))
     return active & np.isfinite(chosen) & (best <= params.gain * cost_plane), chosen, depth
 
@@ -279,6 +279,18 @@ class _RowPoses:
                       self.poses6, self.weights, self.offsets, self.gain, cx, cy, dy, dx)
 
 
+class _Runs(NamedTuple):
+    """A sparse mask as runs of nonzero pixels along its rows: row ``i`` owns
+    runs ``offsets[i]:offsets[i + 1]``, run ``r`` lies on row ``rows[r]`` at
+    the columns ``[starts[r], ends[r])``.  The loops over a sparse mask visit
+    only these (:func:`_runs`)."""
+
+    offsets: np.ndarray
+    rows: np.ndarray
+    starts: np.ndarray
+    ends: np.ndarray
+
+
 class _Scene(NamedTuple):
     """What rendering the rows' weighted poses at an inverse depth needs: the
     reference window, every pose's rotation map (:func:`_pose_maps`), poses,
@@ -301,15 +313,15 @@ class _Scene(NamedTuple):
 class _Fit(NamedTuple):
     """What the sweep compares renderings with: the capture window, where to
     render, which pixels choose a depth (uint8), the truncation ``tau`` and the
-    half side of the cost window (px), and the rows' spans of the render mask
-    (:func:`_spans`; the active pixels lie within them)."""
+    half side of the cost window (px), and the runs of the render mask
+    (:func:`_runs`; the active pixels lie within them)."""
 
     g: np.ndarray
     render_mask: np.ndarray
     active: np.ndarray
     tau: float
     half: int
-    spans: np.ndarray
+    runs: _Runs
 
 
 class _Best(NamedTuple):
@@ -340,26 +352,34 @@ def render_at(scene, q, mask, origin_yx=(0, 0)):
     valid reference data.  The one renderer of the depth steps."""
     out = np.full(mask.shape, np.nan, np.float32)
     mask = np.ascontiguousarray(mask, np.uint8)
-    _render_depth(scene, float(q), mask, _spans(mask), out, int(origin_yx[0]), int(origin_yx[1]))
+    _render_depth(scene, float(q), mask, _runs(mask), out, int(origin_yx[0]), int(origin_yx[1]))
     return out
 
 
 @numba.njit(nogil=True, cache=True)
-def _spans(mask):
-    """Per row, the columns ``[first, last + 1)`` of the nonzero pixels of
-    ``mask`` ((0, 0) in a row without any): the loops over a sparse mask visit
-    only these."""
+def _runs(mask):
+    """The :class:`_Runs` of the nonzero pixels of ``mask``."""
     height, width = mask.shape
-    spans = np.zeros((height, 2), np.int64)
+    offsets = np.zeros(height + 1, np.int64)
     for i in range(height):
-        j0 = 0
-        while j0 < width and mask[i, j0] == 0:
-            j0 += 1
-        j1 = width
-        while j1 > j0 and mask[i, j1 - 1] == 0:
-            j1 -= 1
-        spans[i, 0], spans[i, 1] = j0, max(j1, j0)
-    return spans
+        count = 0
+        for j in range(width):
+            if mask[i, j] != 0 and (j == 0 or mask[i, j - 1] == 0):
+                count += 1
+        offsets[i + 1] = offsets[i] + count
+    rows = np.empty(offsets[height], np.int64)
+    starts = np.empty(offsets[height], np.int64)
+    ends = np.empty(offsets[height], np.int64)
+    for i in range(height):
+        r = offsets[i]
+        rows[offsets[i]:offsets[i + 1]] = i
+        for j in range(width):
+            if mask[i, j] != 0 and (j == 0 or mask[i, j - 1] == 0):
+                starts[r] = j
+            if mask[i, j] != 0 and (j == width - 1 or mask[i, j + 1] == 0):
+                ends[r] = j + 1
+                r += 1
+    return _Runs(offsets, rows, starts, ends)
 
 
 @numba.njit(nogil=True, cache=True)
@@ -374,11 +394,11 @@ def _pose_maps(poses6, focal, cx, cy):
 
 
 @numba.njit(nogil=True, cache=True)
-def _render_depth(scene, q, mask, spans, out, r0, c0):
+def _render_depth(scene, q, mask, runs, out, r0, c0):
     """``out[i, j]`` = capture row ``r0 + i``'s weighted poses at inverse depth
     ``q`` (translations and scale times ``q``, rotations as they are) applied
     to the reference at column ``c0 + j``, times the column gain, where
-    ``mask`` (nonzero only within ``spans``, :func:`_spans`); NaN where a pose
+    ``mask`` (nonzero only within ``runs``, :func:`_runs`); NaN where a pose
     leaves valid reference data.  Pose by pose along the row, each pose's map
     reduced to the row once (:func:`_row_map`)."""
     height, width = out.shape
@@ -387,20 +407,23 @@ def _render_depth(scene, q, mask, spans, out, r0, c0):
     poses6 = scene.poses6
     for i in range(height):
         s0, s1 = scene.offsets[r0 + i], scene.offsets[r0 + i + 1]
-        a, b = spans[i, 0], spans[i, 1]
-        if s0 == s1 or a >= b:
+        r_a, r_b = runs.offsets[i], runs.offsets[i + 1]
+        if s0 == s1 or r_a == r_b:
             continue
-        acc[a:b] = 0.0
+        for r in range(r_a, r_b):
+            acc[runs.starts[r]:runs.ends[r]] = 0.0
         for k in range(s0, s1):
             row = _row_map(scene.maps[k], poses6[k, 0] * q, poses6[k, 1] * q, 1.0 + poses6[k, 2] * q,
                            r0 + i + scene.dy, scene.cx, scene.cy)
-            for j in range(a, b):
-                if mask[i, j] != 0:
-                    u, v = _point_on_row(row, c0 + j + scene.dx)
-                    acc[j] += scene.weights[k] * _bilinear(scene.ref, u, v)  # NaN stays NaN
-        for j in range(a, b):
-            if mask[i, j] != 0 and not math.isnan(acc[j]):
-                out[i, j] = acc[j] * (scene.gain[c0 + j] if per_column else 1.0)
+            for r in range(r_a, r_b):
+                for j in range(runs.starts[r], runs.ends[r]):
+                    if mask[i, j] != 0:
+                        u, v = _point_on_row(row, c0 + j + scene.dx)
+                        acc[j] += scene.weights[k] * _bilinear(scene.ref, u, v)  # NaN stays NaN
+        for r in range(r_a, r_b):
+            for j in range(runs.starts[r], runs.ends[r]):
+                if mask[i, j] != 0 and not math.isnan(acc[j]):
+                    out[i, j] = acc[j] * (scene.gain[c0 + j] if per_column else 1.0)
 
 
 @numba.njit(nogil=True, cache=True)
@@ -426,7 +449,7 @@ def _sweep(scene, fit, qs, stride, best):
             _one_depth(scene, fit, qs[k], k, index, index, -1, scratch, best)
     if stride <= 1:
         return
-    lo, hi = _window_range(index, fit.active, fit.half, fit.spans)
+    lo, hi = _window_range(index, fit.active, fit.half, fit.runs)
     for k in range(count):
         if not (k % stride == 0 or k == count - 1):
             _one_depth(scene, fit, qs[k], k, lo, hi, stride, scratch, best)
@@ -441,33 +464,37 @@ def _one_depth(scene, fit, q, k, lo, hi, stride, scratch, best):
     (``lo``, ``hi``: the window's range of them) are rendered, and only such
     active pixels are evaluated."""
     want, err, rendered, across = scratch
-    tau, half, g, spans = fit.tau, fit.half, fit.g, fit.spans
+    tau, half, g, runs = fit.tau, fit.half, fit.g, fit.runs
     height, width = err.shape
     area = float((2 * half + 1) * (2 * half + 1))
 
-    for i in range(height):
-        for j in range(spans[i, 0], spans[i, 1]):
+    for r in range(runs.rows.shape[0]):
+        i = runs.rows[r]
+        for j in range(runs.starts[r], runs.ends[r]):
             want[i, j] = fit.render_mask[i, j] != 0 and (stride < 0 or (lo[i, j] - stride < k < hi[i, j] + stride))
             if want[i, j]:
                 rendered[i, j] = np.nan
-    _render_depth(scene, q, want, spans, rendered, 0, 0)
-    for i in range(height):
-        for j in range(spans[i, 0], spans[i, 1]):
+    _render_depth(scene, q, want, runs, rendered, 0, 0)
+    for r in range(runs.rows.shape[0]):
+        i = runs.rows[r]
+        for j in range(runs.starts[r], runs.ends[r]):
             if want[i, j] != 0:
                 if math.isnan(rendered[i, j]):
                     err[i, j] = tau
                 else:
                     e = abs(g[i, j] - rendered[i, j])
                     err[i, j] = tau if e > tau else e  # NaN (no capture data) stays NaN
-    for i in range(height):
-        for j in range(spans[i, 0], spans[i, 1]):
+    for r in range(runs.rows.shape[0]):
+        i = runs.rows[r]
+        for j in range(runs.starts[r], runs.ends[r]):
             if want[i, j] != 0:
                 acc = 0.0
                 for d in range(-half, half + 1):
                     acc += err[i, min(max(j + d, 0), width - 1)]
                 across[i, j] = acc
-    for i in range(height):
-        for j in range(spans[i, 0], spans[i, 1]):
+    for r in range(runs.rows.shape[0]):
+        i = runs.rows[r]
+        for j in range(runs.starts[r], runs.ends[r]):
             if fit.active[i, j] == 0 or math.isnan(rendered[i, j]):
                 continue
             if stride > 0 and not (best.index[i, j] >= 0 and abs(k - best.index[i, j]) < stride):
@@ -485,24 +512,26 @@ def _one_depth(scene, fit, q, k, lo, hi, stride, scratch, best):
 
 
 @numba.njit(nogil=True, cache=True)
-def _window_range(index, active, half, spans):
-    """Per pixel within the rows' ``spans`` (:func:`_spans`, holding every
-    active pixel), the smallest and largest ``index`` of the active pixels in
-    its window (lo > hi where there are none, and off the spans)."""
+def _window_range(index, active, half, runs):
+    """Per pixel of the ``runs`` (:func:`_runs`, holding every active pixel and
+    its window), the smallest and largest ``index`` of the active pixels in its
+    window (lo > hi where there are none, and off the runs)."""
     height, width = index.shape
     big = np.iinfo(np.int64).max // 2
     row_lo = np.full((height, width), big, np.int64)
     row_hi = np.full((height, width), -big, np.int64)
-    for i in range(height):
-        for j in range(spans[i, 0], spans[i, 1]):
+    for r in range(runs.rows.shape[0]):
+        i = runs.rows[r]
+        for j in range(runs.starts[r], runs.ends[r]):
             if active[i, j] != 0 and index[i, j] >= 0:
                 for d in range(max(j - half, 0), min(j + half, width - 1) + 1):
                     row_lo[i, d] = min(row_lo[i, d], index[i, j])
                     row_hi[i, d] = max(row_hi[i, d], index[i, j])
     lo = np.full((height, width), big, np.int64)
     hi = np.full((height, width), -big, np.int64)
-    for i in range(height):
-        for j in range(spans[i, 0], spans[i, 1]):
+    for r in range(runs.rows.shape[0]):
+        i = runs.rows[r]
+        for j in range(runs.starts[r], runs.ends[r]):
             for d in range(max(i - half, 0), min(i + half, height - 1) + 1):
                 lo[i, j] = min(lo[i, j], row_lo[d, j])
                 hi[i, j] = max(hi[i, j], row_hi[d, j])

@@ -11,7 +11,7 @@ import pytest
 from scipy import ndimage
 
 from rsmb import ops
-from rsmb.ops.depth._depthmap import _Best, _Fit, _geometry, _RowPoses, _spans, _sweep, _window_cost
+from rsmb.ops.depth._depthmap import _Best, _Fit, _geometry, _RowPoses, _runs, _sweep, _window_cost
 
 from .test_layers import EXPOSURE, SHAPE, _path  # the same scene and camera path
 
@@ -162,7 +162,7 @@ def test_the_sweep_is_each_depth_rendered_and_box_filtered(raised):
     chosen, depth = np.full(g.shape, np.nan, np.float32), np.ones(g.shape, np.float32)
     scene = rows.scene(ref, geometry)
     render_mask = render_mask.astype(np.uint8)
-    fit = _Fit(g, render_mask, active.astype(np.uint8), tau, window // 2, _spans(render_mask))
+    fit = _Fit(g, render_mask, active.astype(np.uint8), tau, window // 2, _runs(render_mask))
     _sweep(scene, fit, qs, 1, _Best(best, chosen, depth, np.full(g.shape, -1)))
     assert np.isfinite(want_best).sum() > 0.9 * active.sum() and not np.isfinite(best[~active]).any()
     np.testing.assert_allclose(best, want_best, rtol=1e-5, atol=1e-6)
