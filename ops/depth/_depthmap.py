@@ -551,13 +551,15 @@ def _row_map(m, tx, ty, sc, y, cx, cy):
     """:func:`_point`'s map reduced to capture row ``y``: what
     :func:`_point_on_row` needs for any column of it."""
     uy = (y - cy - ty) / sc
-    return (m[0], m[3], m[6], m[1] * uy + m[2], m[4] * uy + m[5], m[7] * uy + m[8], cx + tx, 1.0 / sc, cx, cy)
+    ch = m[7] * uy + m[8]
+    return (m[0], m[3], m[6], m[1] * uy + m[2], m[4] * uy + m[5], ch, cx + tx, 1.0 / sc, cx, cy, 1.0 / ch)
 
 
 @numba.njit(nogil=True, cache=True)
 def _point_on_row(row, x):
-    """:func:`_point` at column ``x`` of the row :func:`_row_map` reduced to."""
-    m0, m3, m6, cu, cv, ch, x0, inverse_scale, cx, cy = row
+    """:func:`_point` at column ``x`` of the row :func:`_row_map` reduced to
+    (the division along the row done once where the pose has no tilt)."""
+    m0, m3, m6, cu, cv, ch, x0, inverse_scale, cx, cy, flat_h = row
     ux = (x - x0) * inverse_scale
-    h = 1.0 / (m6 * ux + ch)
+    h = flat_h if m6 == 0.0 else 1.0 / (m6 * ux + ch)
     return (m0 * ux + cu) * h + cx, (m3 * ux + cv) * h + cy
