@@ -248,18 +248,17 @@ class _RowPoses:
     def of(cls, registration, height):
         some = next((p for p, _ in registration.row_weights.values()), np.zeros((0, 1)))
         axes = registration.axes[:some.shape[1]]
-        poses, weights, offsets = [], [], [0]
-        for row in range(height):
-            p, w = registration.row_weights.get(row, (np.zeros((0, len(axes))), np.zeros(0)))
-            p6 = full_poses(p, axes)
-            if registration.slow is not None and len(w):
-                p6 = p6 + registration.slow.pose6(row)  # rotations only: not scaled by depth
-            poses.append(p6)
-            weights.append(np.asarray(w, np.float64))
-            offsets.append(offsets[-1] + len(w))
+        rows = [row for row in range(height) if row in registration.row_weights]
+        counts = np.zeros(height, np.int64)
+        counts[rows] = [len(registration.row_weights[row][1]) for row in rows]
+        poses = full_poses(np.concatenate([np.asarray(registration.row_weights[row][0], np.float64).reshape(-1, len(axes))
+                                           for row in rows] or [np.zeros((0, len(axes)))]), axes)
+        if registration.slow is not None:
+            poses = poses + registration.slow.pose6(np.repeat(np.arange(height), counts))  # rotations: not scaled by depth
+        weights = np.concatenate([np.asarray(registration.row_weights[row][1], np.float64) for row in rows] or [np.zeros(0)])
         gain = registration.column_gain
-        return cls(np.concatenate(poses) if poses else np.zeros((0, 6)), np.concatenate(weights),
-                   np.asarray(offsets, np.int64), np.ones(1) if gain is None else np.asarray(gain, np.float64))
+        return cls(poses, weights, np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+                   np.ones(1) if gain is None else np.asarray(gain, np.float64))
 
     def largest_translation(self):
         """Largest displacement (px) a weighted pose's translation gives a pixel."""

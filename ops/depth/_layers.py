@@ -150,7 +150,7 @@ def depth_layers(registration, reference, distorted, *, camera, threshold, refer
     params = params or LayerParams()
     out = LayerResult(np.zeros(distorted.shape, bool), registration.registered.copy(), registration.chi.copy())
     candidates = (np.abs(registration.chi) > threshold) & registration.valid
-    labels, count = ndimage.label(ndimage.binary_dilation(candidates), structure=np.ones((3, 3)))
+    labels, count = ndimage.label(_dilate(candidates, cv2.MORPH_CROSS, 1), structure=np.ones((3, 3)))
     if count == 0:
         return out
     frame = _Frame(registration, reference, distorted, camera, reference_origin_yx, distorted_origin_yx)
@@ -160,7 +160,7 @@ def depth_layers(registration, reference, distorted, *, camera, threshold, refer
         component = (labels[box] == index) & candidates[box]
         if component.sum() < params.min_area:
             continue
-        ring = plane[box] & ~component & ndimage.binary_dilation(component, np.ones((3, 3), bool), iterations=RING)
+        ring = plane[box] & ~component & _dilate(component, cv2.MORPH_RECT, RING)
         found = _test_component(frame, box, component, ring, params.depths, threshold, params.min_area)
         if found is not None:
             _mark(out, frame, box, component, found, lambda_chi)
@@ -311,7 +311,7 @@ def _edge(pixels, explained, rendered, g, threshold):
     finite = np.isfinite(rendered)
     lo = ndimage.minimum_filter(np.where(finite, rendered, np.inf), 3)
     hi = ndimage.maximum_filter(np.where(finite, rendered, -np.inf), 3)
-    near = ndimage.binary_dilation(explained, np.ones((3, 3), bool))
+    near = _dilate(explained, cv2.MORPH_RECT, 1)
     return pixels & near & (g >= lo - threshold) & (g <= hi + threshold)
 
 
@@ -351,11 +351,25 @@ def _inside(frame, points):
 def _filled(frame, points):
     """The reference-window pixels under ``points`` (n, 2) (row, col), closed
     and with their holes filled."""
-    mask = np.zeros(frame.ref.shape, np.uint8)
+    out = np.zeros(frame.ref.shape, bool)
     r, c = _inside(frame, points).T
-    mask[r, c] = 1
+    if not len(r):
+        return out
+    # within the points' box and a margin of 2 px: the closing reaches 1 px
+    # beyond them, and the background around the box reaches the border
+    box = tuple(slice(max(int(x.min()) - 2, 0), min(int(x.max()) + 3, n)) for x, n in zip((r, c), out.shape))
+    mask = np.zeros(out[box].shape, np.uint8)
+    mask[r - box[0].start, c - box[1].start] = 1
     mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
-    return ndimage.binary_fill_holes(mask)
+    out[box] = ndimage.binary_fill_holes(mask)
+    return out
+
+
+def _dilate(mask, shape, radius):
+    """``mask`` (bool) dilated by a ``shape`` (cv2.MORPH_CROSS or MORPH_RECT)
+    of half side ``radius``, nothing beyond its border."""
+    kernel = cv2.getStructuringElement(shape, (2 * radius + 1, 2 * radius + 1))
+    return cv2.dilate(mask.astype(np.uint8), kernel) > 0
 
 
 def _hull(frame, points):
