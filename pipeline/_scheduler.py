@@ -290,7 +290,7 @@ class Runner:
             kw["num_workers"] = self.workers
         try:
             with _DaskProgress(progress) if progress is not None else contextlib.nullcontext():
-                return list(dask.compute(*tasks, scheduler=self.scheduler, **kw))
+                return list(dask.compute(*tasks, scheduler=_local_get(self.scheduler), **kw))
         except BaseException:
             if tracked is not None:
                 tracked.settle()
@@ -306,6 +306,27 @@ class Runner:
 
             self._pool_threads = Executor(self.workers or os.cpu_count() or 1)
         return self._pool_threads
+
+
+def _local_get(scheduler):
+    """dask's scheduler function for a local scheduler's name.  Given the
+    function rather than the name, ``dask.compute`` does not look for a
+    dask.distributed client first, which imports dask.distributed (a
+    fraction of a second of the run's serial start, in a run that uses no
+    cluster); the function is the one the name stands for."""
+    if scheduler == "threads":
+        import dask.threaded
+
+        return dask.threaded.get
+    if scheduler == "processes":
+        import dask.multiprocessing
+
+        return dask.multiprocessing.get
+    if scheduler == "synchronous":
+        import dask.local
+
+        return dask.local.get_sync
+    return scheduler
 
 
 class _Tracked:

@@ -154,3 +154,24 @@ def test_a_failed_map_returns_after_its_running_tasks(tmp_path, shared):
         with pytest.raises(ValueError, match="bad input"):
             runner.map("t", _fail_or_write, [(late, 0.5), (None, 0.0)])
         assert late.read_text() == "written"
+
+
+@pytest.mark.parametrize("scheduler", ["threads", "processes", "synchronous"])
+def test_a_local_scheduler_is_the_function_its_name_stands_for(scheduler):
+    import dask.base
+
+    assert _scheduler._local_get(scheduler) is dask.base.named_schedulers[scheduler]
+
+
+def test_a_local_run_does_not_import_dask_distributed():
+    """A threads run needs no cluster: dask.distributed (an import of a
+    fraction of a second on the run's serial start) stays unloaded.  In a
+    fresh interpreter, where nothing else has imported it."""
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom rsmb.pipeline._scheduler import Runner\n"
+            "assert Runner('threads', workers=2).map('t', abs, [(-1,), (-2,)]) == [1, 2]\n"
+            "print('distributed' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
