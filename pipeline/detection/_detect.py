@@ -32,6 +32,7 @@ import dataclasses
 import functools
 import logging
 import os
+import threading
 import time
 from pathlib import Path
 
@@ -49,7 +50,7 @@ from ._outputs import _check_outputs, _finished, ground_geo, write_products
 from ._overview import slow_stage
 from ._plan import VERSION, DetectConfig, DetectResult, _plan
 from .._scheduler import WORKER_TIMEOUT, check_scheduler, open_runner
-from ..report._previews import write_previews
+from ..report._previews import preview_arrays, write_previews
 
 __all__ = ["detect"]
 
@@ -268,9 +269,10 @@ def _attributes(plan, result, scheduler):
     return tiles.jsonable(attrs)
 
 
-def _finish(group, store, plan, result, scheduler, overwrite, geotiff):
-    """Stage 6: attributes, scratch arrays dropped, the store renamed into
-    place, GeoTIFFs on request."""
+def _finish(group, store, plan, result, scheduler, overwrite, geotiff, previews):
+    """Stage 6: attributes, scratch arrays dropped, the previews
+    (``previews``: a :class:`_Beside` making them) written, the store renamed
+    into place, GeoTIFFs on request."""
     axes = plan.params.trajectory_axes
     # one metadata write for all of them (``attrs.update`` writes once per key)
     group.update_attributes({**_attributes(plan, result, scheduler), "parallax": tiles.jsonable(
@@ -287,12 +289,39 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff):
     group["trajectory"].update_attributes({"pose_axes": list(axes), "units": [ops.AXIS_UNITS[a] for a in axes]})
     for name in ("work", "ingest"):
         del group[name]
-    write_previews(group, plan.pairing)  # what the report shows of the inputs, which may not stay where they are
+    # what the report shows of the inputs, which may not stay where they are
+    write_previews(group, plan.pairing, previews=previews.result())
     final = tiles.finalize_result_store(store, plan.output, overwrite=overwrite)
     if geotiff is not None:
         write_products(final, geotiff, geo, overwrite=overwrite)
     log.info("wrote %s: %d changed px (threshold %.3f), %.2f MP/s", final, result.changed_pixels, result.threshold,
              result.megapixels_per_s)
+
+
+class _Beside:
+    """``func(*args)`` run in a thread of its own, started now; :meth:`result`
+    waits for it (and raises what it raised).  For work that needs only the
+    inputs, such as the previews (read and reduced on one thread): made
+    beside the stages, it takes a core while a stage leaves one idle (the
+    slow part's one task, the last tiles) instead of adding to the run's
+    serial end.  A daemon: a run that fails does not wait for it."""
+
+    def __init__(self, func, *args):
+        self._out, self._error = None, None
+        self._thread = threading.Thread(target=self._run, args=(func, args), name="rsmb-beside", daemon=True)
+        self._thread.start()
+
+    def _run(self, func, args):
+        try:
+            self._out = func(*args)
+        except BaseException as error:  # noqa: BLE001 - raised again in the caller's thread by result()
+            self._error = error
+
+    def result(self):
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._out
 
 
 @contextlib.contextmanager
@@ -388,6 +417,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
         if resume and group.attrs.get("run_key") != plan.key:
             raise InputError(f"{output}: the interrupted run had other inputs or parameters; run without --resume")
         timings = {}
+        previews = _Beside(preview_arrays, plan.pairing)  # from the inputs alone: beside every stage
         try:
             own = open_runner(scheduler, workers=workers, worker_timeout=worker_timeout) if runner is None else None
             with own or contextlib.nullcontext(runner) as shared:
@@ -397,7 +427,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
                 plan, run, found = _stages(_Counted(shared), group, run, plan, resume, timings)
             timings["total_s"] = time.perf_counter() - t_start
             result = _result(group, run, plan, found, timings)
-            _finish(group, store, plan, result, scheduler, overwrite, geotiff)
+            _finish(group, store, plan, result, scheduler, overwrite, geotiff, previews)
             return result
         except BaseException as error:
             # an interruption keeps what a --resume can continue; unusable inputs do not

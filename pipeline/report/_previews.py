@@ -2,8 +2,9 @@
 
 A report shows the reference (before) and the capture (after) as a surveyor
 sees them, in colour where the inputs have it; it must not depend on the
-inputs still being where the run found them.  So :func:`write_previews`, called
-once at the end of ``rsmb detect``, stores both as small RGBA arrays:
+inputs still being where the run found them.  So ``rsmb detect`` makes both
+(:func:`preview_arrays`, in a thread of its own beside the run's tasks) and
+stores them at its end (:func:`write_previews`) as small RGBA arrays:
 
 ``preview_capture``
     The capture on its own pixel grid (sensor frame), block mean of
@@ -34,7 +35,8 @@ from rsmb import tiles
 
 from ._report_figures import _reduce_band
 
-__all__ = ["PREVIEW_NAMES", "PREVIEW_SIDE", "preview_factor", "read_preview", "reduce_preview", "write_previews"]
+__all__ = ["PREVIEW_NAMES", "PREVIEW_SIDE", "preview_arrays", "preview_factor", "read_preview", "reduce_preview",
+           "write_previews"]
 
 PREVIEW_SIDE = 1024  # px, the longer side of a preview at most
 PREVIEW_NAMES = ("preview_reference", "preview_capture")
@@ -48,17 +50,22 @@ def preview_factor(shape, side=PREVIEW_SIDE):
     return max(1, math.ceil(max(shape) / side))
 
 
-def write_previews(group, pairing, *, side=PREVIEW_SIDE):
-    """Write ``preview_reference`` and ``preview_capture`` into a detect store.
+def preview_arrays(pairing, *, side=PREVIEW_SIDE):
+    """The two previews of a run's inputs, read from the input files (no
+    store needed: ``rsmb detect`` makes them beside its tasks).
 
     Parameters
     ----------
-    group : zarr.Group
-        The store being written (replaced if the arrays exist).
     pairing : tiles.Pairing
         How the run compared the capture with its reference set.
     side : int
         Longest side of a preview, px.
+
+    Returns
+    -------
+    factor : int
+    previews : dict
+        ``{name: (rgba uint8 (h, w, 4), frame)}`` for :data:`PREVIEW_NAMES`.
     """
     factor = preview_factor(pairing.shape, side)
     shape = tuple(-(-n // factor) for n in pairing.shape)
@@ -69,8 +76,28 @@ def write_previews(group, pairing, *, side=PREVIEW_SIDE):
     else:
         reference = _read_preview(pairing.references[0], factor)
         frame = "the reference's own pixels (compared pixel for pixel)"
-    for name, rgba, where in (("preview_reference", reference, frame),
-                              ("preview_capture", capture, "sensor: the capture's own pixels")):
+    return factor, {"preview_reference": (reference, frame),
+                    "preview_capture": (capture, "sensor: the capture's own pixels")}
+
+
+def write_previews(group, pairing, *, side=PREVIEW_SIDE, previews=None):
+    """Write ``preview_reference`` and ``preview_capture`` into a detect store.
+
+    Parameters
+    ----------
+    group : zarr.Group
+        The store being written (replaced if the arrays exist).
+    pairing : tiles.Pairing
+        How the run compared the capture with its reference set.
+    side : int
+        Longest side of a preview, px.
+    previews : tuple, optional
+        What :func:`preview_arrays` returned for ``pairing`` and ``side``
+        (made now when not given).
+    """
+    factor, arrays = preview_arrays(pairing, side=side) if previews is None else previews
+    for name in PREVIEW_NAMES:
+        rgba, where = arrays[name]
         array = group.create_array(name, shape=rgba.shape, dtype="uint8", chunks=rgba.shape,
                                    dimension_names=["preview_row", "preview_col", "rgba"], overwrite=True,
                                    compressors=tiles.IMAGE_COMPRESSORS)

@@ -250,3 +250,13 @@ def test_store_opens_with_coordinates_and_crs(tmp_path, geotiff_pair_files):
         with pytest.raises(MissingSpatialDimensionError):
             a.rio.to_raster(tmp_path / f"{name}.tif")
     assert set(np.unique(ds["change_mask"].values)) <= {0, 1, 255}
+
+
+def test_work_beside_the_stages_gives_its_result_or_its_error():
+    """:class:`_Beside` (the previews' thread): its function's result, or
+    the error it raised, raised again in the caller's thread."""
+    from rsmb.pipeline.detection._detect import _Beside
+
+    assert _Beside(divmod, 7, 2).result() == (3, 1)
+    with pytest.raises(ZeroDivisionError):
+        _Beside(divmod, 7, 0).result()

@@ -708,6 +708,20 @@ def test_detect_store_keeps_previews_and_the_report_shows_them(store, tmp_path):
     assert not (tmp_path / "old" / "before_after.jpg").exists()
 
 
+def test_detect_store_previews_are_those_of_its_inputs(store):
+    """The previews ``rsmb detect`` makes beside its stages are the ones
+    made from its inputs alone, byte for byte, with their factor."""
+    from rsmb import tiles
+    from rsmb.pipeline.report._previews import preview_arrays, read_preview
+
+    group = zarr.open_group(str(store), mode="r")
+    inputs = group.attrs["inputs"]
+    factor, arrays = preview_arrays(tiles.pair_images(inputs["reference"]["path"], inputs["distorted"]["path"]))
+    for name, (rgba, _) in arrays.items():
+        stored, stored_factor = read_preview(group, name)
+        assert stored_factor == factor and stored.tobytes() == rgba.tobytes() and stored.shape == rgba.shape
+
+
 def test_before_after_figure_outlines_the_changes_on_both():
     """Each panel shows its preview with a contour around each change of its
     own mask (in input pixels: preview pixels times the factor) and a circle
