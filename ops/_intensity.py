@@ -200,12 +200,13 @@ def fill_zeros(values):
                              borderValue=0) > 0
     if not seed.any():
         return seed
-    labels, _ = ndimage.label(zero, structure=np.ones((3, 3), bool))
+    # the 0 regions (8-connected); only those holding a seed are visited
+    _, labels = cv2.connectedComponents(zero.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+    boxes = ndimage.find_objects(labels)
     out = seed.copy()
     seeded = np.unique(labels[seed])
-    for k, box in enumerate(ndimage.find_objects(labels), 1):
-        if box is None or not np.isin(k, seeded):
-            continue
+    for k in seeded[seeded > 0]:  # (0: the seeds the square's opening puts beside a 0 region)
+        box = boxes[k - 1]
         part = labels[box] == k
         out[box] |= ndimage.binary_dilation(seed[box] & part, structure=np.ones((3, 3), bool),
                                             iterations=FILL_REACH, mask=part)

@@ -2,6 +2,7 @@
 interval of a capture pixel and the change term against it."""
 
 import numpy as np
+import pytest
 
 from rsmb import ops
 from rsmb.ops.changes._bounds import TOUCH
@@ -150,6 +151,39 @@ def test_zeros_that_are_fill():
     # a window grown by the rule's margin decides its core as the whole image does
     m = 24 + 48
     assert (ops.fill_zeros(padded[:4 + 100 + m, :4 + 100 + m])[4:104, 4:104] == fill[:100, :100]).all()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_zeros_that_are_fill_by_the_rule_on_the_whole_window(seed):
+    """fill_zeros (0 regions visited one by one) against its rule written on
+    the whole window at once: the seeds (zeros beside no-data or beyond the
+    image, zeros in a FILL_SQUARE square of zeros) and every zero joined to
+    them through zeros within FILL_REACH steps (8-connected)."""
+    import cv2
+    from scipy import ndimage
+
+    from rsmb.ops._intensity import FILL_REACH, FILL_SQUARE
+
+    rng = np.random.default_rng(seed)
+    image = rng.uniform(0.05, 0.9, (180, 220)).astype(np.float32)
+    image[ndimage.binary_dilation(rng.random(image.shape) < 0.004, iterations=int(rng.integers(1, 4)))] = 0.0
+    image[rng.random(image.shape) < 0.02] = 0.0  # dark specks
+    y, x = rng.integers(0, 150, 2)
+    image[y:y + 30, x:x + 30] = 0.0  # a square of zeros, some of it maybe on the border
+    image[rng.integers(0, 180, 3), :] = 0.0 if seed % 2 else image[0, 0]  # thin lines reaching the edge
+    image[rng.random(image.shape) < 0.003] = np.nan  # no-data
+    padded = np.pad(image, 2, constant_values=np.nan)
+    zero = padded == 0
+    seeds = zero & ndimage.binary_dilation(~np.isfinite(padded), structure=np.ones((3, 3), bool))
+    # the squares as the rule finds them (cv2's opening by the even square, whose anchor puts its result
+    # one pixel down and right of the zeros: seeds beside a 0 region too, which join nothing)
+    seeds |= cv2.morphologyEx(zero.astype(np.uint8), cv2.MORPH_OPEN, np.ones((FILL_SQUARE, FILL_SQUARE), np.uint8),
+                              borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    want = seeds | ndimage.binary_dilation(seeds & zero, structure=np.ones((3, 3), bool), iterations=FILL_REACH,
+                                           mask=zero)
+    got = ops.fill_zeros(padded)
+    assert got.any() and (got != zero).any()  # some zeros are fill, some are not
+    np.testing.assert_array_equal(got, want)
 
 
 def test_pixels_beside_a_clipped_one_keep_their_fit_through_the_method():
