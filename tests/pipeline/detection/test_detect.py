@@ -260,3 +260,27 @@ def test_work_beside_the_stages_gives_its_result_or_its_error():
     assert _Beside(divmod, 7, 2).result() == (3, 1)
     with pytest.raises(ZeroDivisionError):
         _Beside(divmod, 7, 0).result()
+
+
+def test_task_arrays_write_empty_chunks_only_when_compressed(tmp_path):
+    """A task writes every chunk of a compressed array, one equal to the fill
+    value too (zarr's comparison of each chunk with it is skipped: an empty
+    compressed chunk is a few bytes), and skips the empty chunks of an
+    uncompressed scratch array (a whole chunk's bytes); both read back what
+    was written."""
+    from rsmb import tiles
+    from rsmb.pipeline.detection import _tasks
+
+    specs = {"packed": tiles.ArraySpec((8, 8), "uint8", (4, 4), ("row", "col")),
+             "scratch": tiles.ArraySpec((8, 8), "float32", (4, 4), ("y", "x"), float("nan"), compressed=False)}
+    tiles.create_result_store(tmp_path / "s.zarr", specs, {}, overwrite=False)
+    run = _tasks.RunStore(str(tiles.partial_path(tmp_path / "s.zarr")), "key-empty-chunks")
+    _tasks._array(run, "packed")[:4, :4] = np.zeros((4, 4), np.uint8)
+    _tasks._array(run, "packed")[4:, 4:] = np.ones((4, 4), np.uint8)
+    _tasks._array(run, "scratch")[:4, :4] = np.full((4, 4), np.nan, np.float32)
+    _tasks._array(run, "scratch")[4:, 4:] = np.ones((4, 4), np.float32)
+    folders = {name: Path(run.path) / name / "c" for name in specs}
+    chunks = {name: sorted(str(p.relative_to(c)) for p in c.rglob("*") if p.is_file()) for name, c in folders.items()}
+    assert chunks == {"packed": ["0/0", "1/1"], "scratch": ["1/1"]}
+    assert (_tasks._array(run, "packed")[:] == np.kron([[0, 0], [0, 1]], np.ones((4, 4)))).all()
+    assert np.isnan(_tasks._array(run, "scratch")[:4, :]).all() and (_tasks._array(run, "scratch")[4:, 4:] == 1).all()
