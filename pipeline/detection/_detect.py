@@ -299,26 +299,32 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff, previews)
 
 
 class _Beside:
-    """``func(*args)`` run in a thread of its own, started now; :meth:`result`
-    waits for it (and raises what it raised).  For work that needs only the
-    inputs, such as the previews (read and reduced on one thread): made
-    beside the stages, it takes a core while a stage leaves one idle (the
-    slow part's one task, the last tiles) instead of adding to the run's
-    serial end.  A daemon: a run that fails does not wait for it."""
+    """``func(*args)`` run in a thread of its own from :meth:`start` on;
+    :meth:`result` waits for it (starting it if need be) and raises what it
+    raised.  For work that needs only the inputs, such as the previews (read
+    and reduced on one thread): made beside the stages, it takes a core
+    while a stage leaves one idle (the overview's reads, the slow part's one
+    task) instead of adding to the run's serial end.  A daemon: a run that
+    fails does not wait for it."""
 
     def __init__(self, func, *args):
-        self._out, self._error = None, None
-        self._thread = threading.Thread(target=self._run, args=(func, args), name="rsmb-beside", daemon=True)
-        self._thread.start()
+        self._func, self._args = func, args
+        self._out, self._error, self._thread = None, None, None
 
-    def _run(self, func, args):
+    def start(self):
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name="rsmb-beside", daemon=True)
+            self._thread.start()
+        return self
+
+    def _run(self):
         try:
-            self._out = func(*args)
+            self._out = self._func(*self._args)
         except BaseException as error:  # noqa: BLE001 - raised again in the caller's thread by result()
             self._error = error
 
     def result(self):
-        self._thread.join()
+        self.start()._thread.join()
         if self._error is not None:
             raise self._error
         return self._out
@@ -417,14 +423,14 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
         if resume and group.attrs.get("run_key") != plan.key:
             raise InputError(f"{output}: the interrupted run had other inputs or parameters; run without --resume")
         timings = {}
-        previews = _Beside(preview_arrays, plan.pairing)  # from the inputs alone: beside every stage
+        previews = _Beside(preview_arrays, plan.pairing)  # from the inputs alone, beside the stages
         try:
             own = open_runner(scheduler, workers=workers, worker_timeout=worker_timeout) if runner is None else None
             with own or contextlib.nullcontext(runner) as shared:
                 log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", plan.distorted.path,
                          plan.shape[0], plan.shape[1], len(plan.grid), plan.grid.tile, plan.grid.halo,
                          getattr(shared, "describe", lambda: scheduler)())
-                plan, run, found = _stages(_Counted(shared), group, run, plan, resume, timings)
+                plan, run, found = _stages(_Counted(shared), group, run, plan, resume, timings, previews)
             timings["total_s"] = time.perf_counter() - t_start
             result = _result(group, run, plan, found, timings)
             _finish(group, store, plan, result, scheduler, overwrite, geotiff, previews)
@@ -460,10 +466,13 @@ class _Found:
     tasks_per_tile: float
 
 
-def _stages(runner, group, run, plan, resume, timings):
+def _stages(runner, group, run, plan, resume, timings, previews):
     """Stages 2 to 5 on ``runner`` (a :class:`_Counted`), in order: the plan
-    with the halo the rows need, the run store, and a :class:`_Found`."""
+    with the halo the rows need, the run store, and a :class:`_Found`.
+    ``previews`` (a :class:`_Beside`) is started after the ingest, whose
+    tasks keep every core busy, beside the overview and the slow part."""
     run = _ingest(runner, group, run, plan, timings)
+    previews.start()
     slow_stage(runner, group, run, plan, timings)
     halo = plan.grid.halo
     plan = plan.for_rows(group["work/slow"][:])  # the halo the rows need, the slow part known

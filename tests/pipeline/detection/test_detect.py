@@ -257,9 +257,10 @@ def test_work_beside_the_stages_gives_its_result_or_its_error():
     the error it raised, raised again in the caller's thread."""
     from rsmb.pipeline.detection._detect import _Beside
 
-    assert _Beside(divmod, 7, 2).result() == (3, 1)
+    assert _Beside(divmod, 7, 2).start().result() == (3, 1)
+    assert _Beside(divmod, 9, 2).result() == (4, 1)  # never started: result() runs it
     with pytest.raises(ZeroDivisionError):
-        _Beside(divmod, 7, 0).result()
+        _Beside(divmod, 7, 0).start().result()
 
 
 def test_task_arrays_write_empty_chunks_only_when_compressed(tmp_path):
