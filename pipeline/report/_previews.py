@@ -98,9 +98,12 @@ def write_previews(group, pairing, *, side=PREVIEW_SIDE, previews=None):
     factor, arrays = preview_arrays(pairing, side=side) if previews is None else previews
     for name in PREVIEW_NAMES:
         rgba, where = arrays[name]
+        # written whole, as one chunk that is never all fill (alpha 0 everywhere: an input with no data):
+        # zarr's check for an empty chunk compares (h, w, 4) against a broadcast 0, an inner loop of 4
+        # elements per call, slower than the compression (``write_empty_chunks`` skips the check)
         array = group.create_array(name, shape=rgba.shape, dtype="uint8", chunks=rgba.shape,
                                    dimension_names=["preview_row", "preview_col", "rgba"], overwrite=True,
-                                   compressors=tiles.IMAGE_COMPRESSORS)
+                                   compressors=tiles.IMAGE_COMPRESSORS, config={"write_empty_chunks": True})
         array[:] = rgba
         array.update_attributes({"factor": factor, "frame": where,
                             "description": "RGBA preview, block mean of factor x factor input pixels; "
