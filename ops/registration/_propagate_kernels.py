@@ -34,7 +34,7 @@ _SUMS = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})
 #: :mod:`ops.registration._rowsolve` or of :func:`ops._warp._warp_into` (and
 #: what it calls) raises this number, or a checkout that ran the old code
 #: keeps running it here.
-ROWSOLVE_REVISION = 10
+ROWSOLVE_REVISION = 11
 
 #: A row whose centroid moves the window's farthest pixel more than this (px)
 #: away from where the path before it leads (its last pose plus its velocity)

@@ -241,16 +241,29 @@ def _factor_remove(lmat, order, where, nf, q):
 def _factor_solve(h, b, lmat, order, nf, z, rhs, dz):
     """z[:nf] = the solution of ``h[order, order] z = b[order]`` (first
     ``nf`` of ``order``) from the ridged factor (the Gram matrices of
-    neighbouring poses are nearly singular), with steps of iterative
-    refinement against the unridged matrix, which remove the ridge's bias
-    (several when an offset common to every pose, such as intensities far
-    from 0, makes the ridge large against the small eigenvalues).  The steps
-    stop once a correction is below rounding, or small and no longer shrinking
-    (what is left is the rounding of the residual: further steps only move
-    ``z`` within it)."""
+    neighbouring poses are nearly singular), refined (:func:`_refine`)."""
+    _ridged_solve(b, lmat, order, nf, z, rhs)
+    _refine(h, b, lmat, order, nf, z, rhs, dz)
+
+
+@numba.njit(**_JIT)
+def _ridged_solve(b, lmat, order, nf, z, rhs):
+    """z[:nf] = the solution of the ridged system ``L L' z = b[order]``,
+    not refined."""
     for p in range(nf):
         rhs[p] = b[order[p]]
     _triangular_solve(lmat, rhs, nf, z)
+
+
+@numba.njit(**_JIT)
+def _refine(h, b, lmat, order, nf, z, rhs, dz):
+    """Steps of iterative refinement of ``z[:nf]`` against the unridged
+    matrix ``h[order, order]``, which remove the ridge's bias (several when
+    an offset common to every pose, such as intensities far from 0, makes the
+    ridge large against the small eigenvalues).  The steps stop once a
+    correction is below rounding, or small and no longer shrinking (what is
+    left is the rounding of the residual: further steps only move ``z``
+    within it)."""
     before = np.inf
     for _ in range(REFINE_STEPS):
         for p in range(nf):
@@ -276,7 +289,11 @@ def _nnqp(h, b, x, tol):
     updated in place.  The Cholesky factor of the free set's system is
     updated as poses enter (a row appended) and leave (a row removed,
     :func:`_factor_remove`) instead of computed afresh; its ridge is
-    relative to the largest diagonal entry of ``h``."""
+    relative to the largest diagonal entry of ``h``.  The solves of the free
+    set are not refined (:func:`_refine`) until they reach an optimum: from
+    there on each is, as :func:`_factor_solve` does, and the optimum is
+    solved and checked again that way; what is returned is always that of
+    refined solves."""
     m = b.shape[0]
     free = np.zeros(m, dtype=np.bool_)
     lmat = np.empty((m, m))
@@ -293,11 +310,14 @@ def _nnqp(h, b, x, tol):
             free[p] = True
             where[p] = nf
             nf = _factor_add(h, lmat, order, nf, p, ridge)
-    for _outer in range(3 * m + 10):
+    precise = False  # solves refined
+    for _outer in range(3 * m + 11):
         for _inner in range(3 * m + 10):
             if nf == 0:
                 break
-            _factor_solve(h, b, lmat, order, nf, z, rhs, dz)
+            _ridged_solve(b, lmat, order, nf, z, rhs)
+            if precise:
+                _refine(h, b, lmat, order, nf, z, rhs, dz)
             alpha = 1.0
             blocked = -1
             for p in range(m):  # in pose order: ties go to the lower pose
@@ -326,7 +346,10 @@ def _nnqp(h, b, x, tol):
                 if g < best:
                     best, best_p = g, p
         if best_p < 0:
-            return
+            if precise or nf == 0:
+                return
+            precise = True  # the optimum of unrefined solves: solved and checked again, refined
+            continue
         free[best_p] = True
         where[best_p] = nf
         nf = _factor_add(h, lmat, order, nf, best_p, ridge)
@@ -555,6 +578,7 @@ def _iterate(cols, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=Tru
     pick = np.empty(max(max_add, 1), dtype=np.int64)
     cache = _gram_cache(k_count, min(k_count, GRAM_POOL))
     m = 0
+    warm = False  # started from a support: its partition is a Newton model's first guess
     if restricted:
         # a warm start is first solved on its own support: a row whose
         # support is its neighbour's (most rows) then needs one pass over
@@ -564,6 +588,7 @@ def _iterate(cols, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=Tru
                 idx[m] = k
                 m += 1
         if m > 0:
+            warm = True
             full = False
             for k in range(k_count):
                 seen[k] = w[k] > 0.0
@@ -597,9 +622,10 @@ def _iterate(cols, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=Tru
             for k in range(k_count):
                 seen[k] = work[k]
         # quadratic model of the current partition
-        # Newton model of the partition once it is stable; before that the
-        # half-quadratic majoriser (outlier curvature delta/|r|), which is
-        # bounded below whatever the partition
+        # Newton model of the partition once it is stable, and from the first
+        # iteration of a warm start (the neighbour's fit leaves most pixels
+        # on their side); otherwise the half-quadratic majoriser (outlier
+        # curvature delta/|r|), which is bounded below whatever the partition
         stable = True
         for j in range(n):
             side = 0
@@ -615,7 +641,7 @@ def _iterate(cols, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=Tru
             if part[j] == 0:
                 inliers += 1
         # the Newton model is bounded only with enough inliers to fix every pose
-        newton = newton_ok and stable and it > 0 and inliers >= m
+        newton = newton_ok and inliers >= m and (stable and it > 0 or it == 0 and warm)
         # the Newton model's pixel weights depend on the partition only: its
         # products from the last iteration still hold when that was a Newton
         # model of the same partition
