@@ -422,8 +422,7 @@ def _mosaic_run(run, window) -> np.ndarray | None:
             mosaic = np.full((r1 - r0, c1 - c0), np.nan, dtype=np.float32)
         data, valid = read_window(grid.path, slice(a0 - dr, a1 - dr), slice(b0 - dc, b1 - dc))
         target = mosaic[a0 - r0:a1 - r0, b0 - c0:b1 - c0]
-        fill = valid & np.isnan(target)
-        target[fill] = data[fill]
+        np.copyto(target, data, where=valid & np.isnan(target))  # (masked copy: no boolean gather and scatter)
     return mosaic
 
 
@@ -441,8 +440,7 @@ def _fill_from_run(out: np.ndarray, run, dst_crs: str, dst_affine, resampling: s
         return
     src_affine = base.affine @ Affine.translation(window[2], window[0])
     warped = _resample(mosaic, base.crs, src_affine, dst_crs, dst_affine, out.shape, resampling)
-    hole = np.isnan(out)
-    out[hole] = warped[hole]
+    np.copyto(out, warped, where=np.isnan(out))
 
 
 def _resample(src: np.ndarray, src_crs: str, src_affine, dst_crs: str, dst_affine, shape,
