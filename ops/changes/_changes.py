@@ -164,22 +164,45 @@ def score_histogram(residual, score, valid):
     residual_counts = np.zeros(RESIDUAL_BINS, np.int64)
     score_counts = np.zeros(SCORE_BINS, np.int64)
     _histograms(np.asarray(residual), np.asarray(score), np.asarray(valid, bool), _RESIDUAL_EDGES, _SCORE_EDGES,
-                residual_counts, score_counts)
+                _RESIDUAL_GUESS, residual_counts, score_counts)
     return ScoreHistogram(residual_counts, score_counts)
 
 
+#: Cells per octave of :data:`_RESIDUAL_GUESS` (narrower than a residual bin).
+_GUESS_CELLS = 256
+
+
+def _residual_guesses(edges, cells=_GUESS_CELLS):
+    """Where a residual's bin search starts (:func:`_histograms`), by its
+    binary exponent and leading mantissa (``math.frexp``: ``r = m 2**e``,
+    ``m`` in [0.5, 1)): for each octave ``e`` from the first positive
+    edge's to the last edge's, split into ``cells`` cells of ``m``, the bin
+    of the cell's lower end.  A start, not the answer: the search walks from
+    it to the bin the edges themselves give."""
+    e_lo = math.frexp(edges[1])[1]
+    e_hi = math.frexp(edges[-1])[1]
+    e, k = np.meshgrid(np.arange(e_lo, e_hi + 1), np.arange(cells), indexing="ij")
+    lower = np.ldexp(0.5 + 0.5 * k / cells, e)
+    guess = np.searchsorted(edges, lower, side="right") - 1
+    return np.clip(guess, 0, len(edges) - 2).astype(np.int64).ravel(), int(e_lo)
+
+
+_RESIDUAL_GUESS = _residual_guesses(_RESIDUAL_EDGES)
+
+
 @numba.njit(nogil=True, cache=True)
-def _histograms(residual, score, valid, residual_edges, score_edges, residual_counts, score_counts):
+def _histograms(residual, score, valid, residual_edges, score_edges, residual_guess, residual_counts, score_counts):
     """:func:`score_histogram`'s counts in one pass, as ``np.histogram`` counts
     them: ``|residual|`` clipped to the last residual edge, the score's positive
     values clipped to the last score edge; bins closed on the left, the last
     one on both sides; NaN is not counted.  A value's bin is found from where
-    the edges' spacing puts it (geometric after the first residual edge, even
-    for the score), then checked against the edges themselves."""
+    its binary exponent and mantissa put it (``residual_guess``:
+    :func:`_residual_guesses`, no logarithm per pixel) or the score's even
+    spacing does, then checked against the edges themselves."""
     height, width = valid.shape
     r_last, s_last = residual_edges[-1], score_edges[-1]
     r_first = residual_edges[1]
-    r_per_log = (residual_edges.shape[0] - 2) / math.log(r_last / r_first)
+    table, e_lo = residual_guess
     s_per_unit = (score_edges.shape[0] - 1) / (s_last - score_edges[0])
     for i in range(height):
         for j in range(width):
@@ -188,7 +211,11 @@ def _histograms(residual, score, valid, residual_edges, score_edges, residual_co
             r = abs(np.float64(residual[i, j]))
             if r == r:
                 r = min(r, r_last)
-                guess = 0 if r < r_first else 1 + int(math.log(r / r_first) * r_per_log)
+                guess = 0
+                if r >= r_first:
+                    m, e = math.frexp(r)
+                    guess = table[(e - e_lo) * _GUESS_CELLS + int((m - 0.5) * (2 * _GUESS_CELLS))]
+                    guess += r >= residual_edges[guess + 1]  # a cell meets two bins at most: no branch
                 residual_counts[_bin(residual_edges, r, guess)] += 1
             c = np.float64(score[i, j])
             if c > 0:
