@@ -137,11 +137,13 @@ def overview_cells(data, origin_yx, factor, phase=0):
 
 def block_overview(array, core, factor, phase=0):
     """The cells of ``array``'s overview (:func:`overview_cells`) that start in
-    the block ``core`` (row and column slices): the block is read with
-    ``factor - 1`` more rows and columns, for the cells that straddle its
-    far edges, so that blocks together give the overview of the whole array."""
+    the block ``core`` (row and column slices): the block is read through the
+    end of its last cell, the rows and columns of the cells that straddle its
+    far edges (none when the cells end on its edges: no neighbouring chunk
+    is read), so that blocks together give the overview of the whole array."""
     (r0, r1), (c0, c1) = [(s.start, s.stop) for s in core]
-    data = array[r0:min(r1 + factor - 1, array.shape[0]), c0:min(c1 + factor - 1, array.shape[1])]
+    ends = [phase + -(-(stop - phase) // factor) * factor for stop in (r1, c1)]  # of the last cell starting before stop
+    data = array[r0:min(ends[0], array.shape[0]), c0:min(ends[1], array.shape[1])]
     (row, col), cells = overview_cells(data, (r0, c0), factor, phase)
     rows = max(0, min(cells.shape[0], -(-(r1 - phase) // factor) - row))
     cols = max(0, min(cells.shape[1], -(-(c1 - phase) // factor) - col))

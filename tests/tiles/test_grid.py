@@ -100,6 +100,33 @@ def test_overview_by_blocks_equals_the_whole(factor, phase):
     np.testing.assert_allclose(out, whole, rtol=1e-6)
 
 
+@pytest.mark.parametrize("factor, phase, beyond", [(4, 0, (0, 0)), (8, 0, (0, 0)), (4, 2, (2, 2)), (3, 1, (0, 1))])
+def test_block_overview_reads_through_its_last_cell_only(factor, phase, beyond):
+    """A block's overview reads its rows and columns through the end of the
+    last cell starting in it: nothing beyond the block when the cells end on
+    its edges (no neighbouring chunk touched), else the straddling cells'
+    pixels; its cells are those of the whole array's overview."""
+    from rsmb.tiles import block_overview, overview_cells
+
+    class Recorded:
+        def __init__(self, array):
+            self.array, self.shape, self.keys = array, array.shape, []
+
+        def __getitem__(self, key):
+            self.keys.append(key)
+            return self.array[key]
+
+    array = np.random.default_rng(1).random((128, 128)).astype(np.float32)
+    recorded = Recorded(array)
+    (row, col), cells = block_overview(recorded, (slice(32, 64), slice(64, 96)), factor, phase)
+    (rows, cols), = recorded.keys
+    # (3, 1): the last cells starting in rows 32-63 and columns 64-95 start at 61 (ends 64) and 94 (ends 97)
+    assert (rows.start, rows.stop, cols.start, cols.stop) == (32, 64 + beyond[0], 64, 96 + beyond[1])
+    _, whole = overview_cells(array, (0, 0), factor, phase)
+    np.testing.assert_array_equal(cells, whole[row:row + cells.shape[0], col:col + cells.shape[1]])
+    assert row * factor + phase >= 32 and (row + cells.shape[0] - 1) * factor + phase < 64
+
+
 def _old_components(edges, total):
     """What the seam merge did before scipy.sparse.csgraph: a Python
     union-find over the seam pairs, each component named by its smallest id."""
