@@ -330,6 +330,18 @@ class _Beside:
         return self._out
 
 
+def _beside_stages(pairing):
+    """What the thread beside the stages does (:class:`_Beside`): numba's
+    start (loading the first compiled function from its cache starts its
+    compiler, under a lock the tasks share: in the first start task, the
+    other worker would wait for it), then the input previews
+    (:func:`preview_arrays`), which it returns."""
+    from rsmb.ops._warp import _warp_into
+
+    _warp_into(np.zeros((2, 2), np.float32), np.zeros((1, 6)), 1.0, 0.0, 0.0, 0.0, 0.0, np.empty((1, 1), np.float32))
+    return preview_arrays(pairing)
+
+
 @contextlib.contextmanager
 def _store_lock(output):
     """The exclusive lock of the store ``output``: ``<output>.lock`` beside
@@ -423,7 +435,7 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
         if resume and group.attrs.get("run_key") != plan.key:
             raise InputError(f"{output}: the interrupted run had other inputs or parameters; run without --resume")
         timings = {}
-        previews = _Beside(preview_arrays, plan.pairing)  # from the inputs alone, beside the stages
+        previews = _Beside(_beside_stages, plan.pairing)  # from the inputs alone, beside the stages
         try:
             own = open_runner(scheduler, workers=workers, worker_timeout=worker_timeout) if runner is None else None
             with own or contextlib.nullcontext(runner) as shared:
