@@ -292,11 +292,44 @@ def change_score(chi, registered, *, params=ChangeParams()):
         (tile) gives the score of the whole image except on its outermost
         pixels.
     """
-    score = np.abs(np.asarray(chi, dtype=np.float32))
+    chi = np.asarray(chi, dtype=np.float32)
     if params.interpolation <= 0:
-        return score
-    allowance = _second_differences(np.asarray(registered, dtype=np.float32))
-    return np.maximum(score - np.float32(params.interpolation) * allowance, np.float32(0.0))
+        return np.abs(chi)
+    registered = np.asarray(registered, dtype=np.float32)
+    if chi.ndim != 2 or chi.shape != registered.shape:
+        score = np.abs(chi)
+        allowance = _second_differences(registered)
+        return np.maximum(score - np.float32(params.interpolation) * allowance, np.float32(0.0))
+    out = np.empty(chi.shape, np.float32)
+    _allowed_score(chi, registered, np.float32(params.interpolation), out)
+    return out
+
+
+@numba.njit(nogil=True, cache=True)
+def _allowed_score(chi, image, k, out):
+    """:func:`change_score` in one pass, the same float32 arithmetic as
+    :func:`_second_differences` and ``np.maximum(|chi| - k * allowance,
+    0)`` (NaN kept) pixel by pixel, without their dozen whole-window
+    temporaries."""
+    h, w = image.shape
+    two, zero = np.float32(2.0), np.float32(0.0)
+    for i in range(h):
+        for j in range(w):
+            c = image[i, j]
+            allowance = zero
+            if math.isfinite(c):
+                b = image[i - 1, j] if i > 0 else c
+                a = image[i + 1, j] if i < h - 1 else c
+                b = b if math.isfinite(b) else c
+                a = a if math.isfinite(a) else c
+                along_y = abs((b - two * c) + a)
+                b = image[i, j - 1] if j > 0 else c
+                a = image[i, j + 1] if j < w - 1 else c
+                b = b if math.isfinite(b) else c
+                a = a if math.isfinite(a) else c
+                allowance = along_y + abs((b - two * c) + a)
+            x = abs(chi[i, j]) - k * allowance
+            out[i, j] = x if (x >= zero or x != x) else zero
 
 
 def _second_differences(image):

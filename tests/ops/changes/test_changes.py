@@ -442,6 +442,30 @@ def test_a_hole_in_the_model_is_a_border_not_a_dark_pixel():
     np.testing.assert_allclose(score[[79, 81], 74:86], np.abs(chi[[79, 81], 74:86]), rtol=1e-6)
 
 
+@pytest.mark.parametrize("seed", range(8))
+def test_change_score_is_its_numpy_rule_bit_for_bit(seed):
+    """The one-pass kernel against the rule written with whole arrays:
+    ``max(|chi| - interpolation * (|f_xx| + |f_yy|), 0)`` in float32, a
+    neighbour beyond the window or unknown (NaN, inf) replaced by the pixel,
+    0 allowance on an unknown pixel, NaN chi kept; every byte equal, windows
+    of one row or column included."""
+    from rsmb.ops.changes._changes import _second_differences
+
+    rng = np.random.default_rng(seed)
+    h, w = [(1, 17), (23, 1), (31, 40), (64, 64)][seed % 4]
+    registered = (rng.uniform(-2, 2, (h, w)) * 10.0 ** rng.uniform(-3, 3)).astype(np.float32)
+    registered[rng.random((h, w)) < (0.0, 0.05, 0.3)[seed % 3]] = np.nan
+    registered[rng.random((h, w)) < 0.02] = np.inf
+    chi = rng.normal(0, rng.uniform(0.001, 1), (h, w)).astype(np.float32)
+    chi[rng.random((h, w)) < 0.05] = np.nan
+    chi[rng.random((h, w)) < 0.05] = -0.0
+    params = ChangeParams(interpolation=(0.25, 0.5, 1.0, 1e-3)[seed % 4])
+    want = np.maximum(np.abs(chi) - np.float32(params.interpolation) * _second_differences(registered),
+                      np.float32(0.0))
+    got = change_score(chi, registered, params=params)
+    assert got.dtype == np.float32 and got.shape == (h, w) and got.tobytes() == want.tobytes()
+
+
 def test_model_values_are_the_registered_image_anywhere():
     """The model at pixels the registration did not fit (e.g. clipped ones)
     is what the registered image holds where it did."""
