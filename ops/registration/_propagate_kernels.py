@@ -245,19 +245,37 @@ def _lattice_columns(source, g_valid, a):
     x0 = source.x0 - hi
     good = np.ones((max(distinct, 1), width), np.bool_)  # False on no-data and beyond the image
     spoilt = np.zeros(max(distinct, 1), np.bool_)
+    inside_lo = min(max(-x0, 0), width)  # columns [inside_lo, inside_hi) lie inside the image
+    inside_hi = max(min(wr - x0, width), inside_lo)
     for q in range(distinct):
         img = stack[pick[q] // hr, pick[q] % hr]
-        row_src, row_good = src[q], good[q]
-        for c in range(width):
-            col = x0 + c
-            if col < 0 or col >= wr or math.isnan(img[col]):
-                row_good[c] = False
-                spoilt[q] = True
-            else:
-                row_src[c] = img[col]
+        if inside_lo > 0 or inside_hi < width:
+            spoilt[q] = True
+            good[q, :inside_lo] = False
+            good[q, inside_hi:] = False
+        if _copy_finite(img[x0 + inside_lo:x0 + inside_hi], src[q, inside_lo:inside_hi],
+                        good[q, inside_lo:inside_hi]):
+            spoilt[q] = True
     if spoilt.any():
         _mark_no_data(good, spoilt, _shifts_of(row_of, col_of, sy, source.y, hr, distinct, hi - lo), valid)
     return _Columns(src, row_of, col_of, valid, a, np.zeros(k_count, np.bool_))
+
+
+@numba.njit(**_JIT)
+def _copy_finite(img, out, good):
+    """``out`` = ``img`` where it is finite (left as it is at NaN, no-data),
+    ``good`` = where it is; returns whether any was NaN.  One branch-free
+    loop over the row (vectorised), where a test of bounds and NaN per pixel
+    was not."""
+    nan = 0
+    for c in range(img.shape[0]):
+        v = img[c]
+        ok = not math.isnan(v)
+        if ok:
+            out[c] = v
+        good[c] = ok
+        nan += 0 if ok else 1
+    return nan > 0
 
 
 @numba.njit(**_JIT)
