@@ -171,6 +171,18 @@ def intensity_scale(reference, capture, *, names=("reference", "capture")):
     return IntensityScale(lo, hi, levels[0], levels[1], clipped[0], clipped[1])
 
 
+def _squares(mask, side):
+    """The union of the ``side`` x ``side`` squares of ``mask`` (bool) that
+    lie within it: an opening, its erosion anchored at the square's centre
+    and its dilation at the mirrored point, so that an even side shifts
+    nothing (cv2 anchors both at the same point)."""
+    square = np.ones((side, side), np.uint8)
+    centre, mirrored = side // 2, (side - 1) // 2
+    inside = cv2.erode(mask.astype(np.uint8), square, anchor=(centre, centre), borderType=cv2.BORDER_CONSTANT,
+                       borderValue=0)
+    return cv2.dilate(inside, square, anchor=(mirrored, mirrored), borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+
+
 def fill_zeros(values):
     """The zeros of an image window that are fill, not dark scene.
 
@@ -195,17 +207,14 @@ def fill_zeros(values):
         return zero
     ring = np.ones((3, 3), np.uint8)
     seed = zero & (cv2.dilate((~np.isfinite(values)).astype(np.uint8), ring) > 0)
-    square = np.ones((FILL_SQUARE, FILL_SQUARE), np.uint8)
-    seed |= cv2.morphologyEx(zero.astype(np.uint8), cv2.MORPH_OPEN, square, borderType=cv2.BORDER_CONSTANT,
-                             borderValue=0) > 0
+    seed |= _squares(zero, FILL_SQUARE)
     if not seed.any():
         return seed
     # the 0 regions (8-connected); only those holding a seed are visited
     _, labels = cv2.connectedComponents(zero.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
     boxes = ndimage.find_objects(labels)
     out = seed.copy()
-    seeded = np.unique(labels[seed])
-    for k in seeded[seeded > 0]:  # (0: the seeds the square's opening puts beside a 0 region)
+    for k in np.unique(labels[seed]):
         box = boxes[k - 1]
         part = labels[box] == k
         out[box] |= ndimage.binary_dilation(seed[box] & part, structure=np.ones((3, 3), bool),

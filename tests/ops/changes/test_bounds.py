@@ -159,7 +159,6 @@ def test_zeros_that_are_fill_by_the_rule_on_the_whole_window(seed):
     the whole window at once: the seeds (zeros beside no-data or beyond the
     image, zeros in a FILL_SQUARE square of zeros) and every zero joined to
     them through zeros within FILL_REACH steps (8-connected)."""
-    import cv2
     from scipy import ndimage
 
     from rsmb.ops._intensity import FILL_REACH, FILL_SQUARE
@@ -175,15 +174,26 @@ def test_zeros_that_are_fill_by_the_rule_on_the_whole_window(seed):
     padded = np.pad(image, 2, constant_values=np.nan)
     zero = padded == 0
     seeds = zero & ndimage.binary_dilation(~np.isfinite(padded), structure=np.ones((3, 3), bool))
-    # the squares as the rule finds them (cv2's opening by the even square, whose anchor puts its result
-    # one pixel down and right of the zeros: seeds beside a 0 region too, which join nothing)
-    seeds |= cv2.morphologyEx(zero.astype(np.uint8), cv2.MORPH_OPEN, np.ones((FILL_SQUARE, FILL_SQUARE), np.uint8),
-                              borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
-    want = seeds | ndimage.binary_dilation(seeds & zero, structure=np.ones((3, 3), bool), iterations=FILL_REACH,
-                                           mask=zero)
+    # every FILL_SQUARE square of zeros, found square by square
+    full = np.lib.stride_tricks.sliding_window_view(zero, (FILL_SQUARE, FILL_SQUARE)).all(axis=(2, 3))
+    for y, x in zip(*np.nonzero(full)):
+        seeds[y:y + FILL_SQUARE, x:x + FILL_SQUARE] = True
+    want = seeds | ndimage.binary_dilation(seeds, structure=np.ones((3, 3), bool), iterations=FILL_REACH, mask=zero)
     got = ops.fill_zeros(padded)
     assert got.any() and (got != zero).any()  # some zeros are fill, some are not
     np.testing.assert_array_equal(got, want)
+    assert not (got & ~zero).any()  # only zeros are fill
+
+
+def test_a_black_square_leaves_its_neighbours_alone():
+    """The pixels around a black square that is fill stay data: no rim of real
+    pixels below or right of it becomes fill (an even square's opening
+    anchored at one point shifts it by a pixel)."""
+    image = np.full((80, 80), 0.5, np.float32)
+    image[20:50, 20:50] = 0.0
+    fill = ops.fill_zeros(image)
+    assert fill[20:50, 20:50].all()
+    assert not (fill & (image != 0)).any()
 
 
 def test_pixels_beside_a_clipped_one_keep_their_fit_through_the_method():
