@@ -7,7 +7,7 @@ cores: OpenCV and every BLAS library loaded (threadpoolctl) run one thread per
 task.
 
 Process-wide settings (:func:`configure_process`: OpenCV's and BLAS's thread
-counts, glibc's malloc thresholds and arenas) are made only in processes that exist to run
+counts, the interpreter's switch interval, glibc's malloc thresholds and arenas) are made only in processes that exist to run
 rsmb: the ``processes`` scheduler's worker processes, where each task makes
 them once, and the ``rsmb`` command itself.  A program that imports rsmb as a
 library keeps its settings: while :meth:`Runner.map` runs tasks in the calling
@@ -40,6 +40,11 @@ SCHEDULERS = ("threads", "processes", "synchronous")
 log = logging.getLogger("rsmb")
 
 
+#: The interpreter's switch interval (seconds) in a process that runs rsmb (Python's default is 0.005):
+#: a thread coming back from work that released the GIL (a numba kernel of a tile task, a large numpy
+#: operation, GDAL) waits up to one interval for a thread running Python (a capture's report being
+#: drawn beside the next captures' tiles) to hand the GIL over, at every kernel call of a tile task.
+SWITCH_INTERVAL = 0.001
 _MMAP_THRESHOLD = 4 << 20
 #: glibc keeps up to this much free memory at the top of a heap instead of returning it (M_TRIM_THRESHOLD) ...
 _TRIM_THRESHOLD = 1 << 30
@@ -88,7 +93,9 @@ def configure_process():
     """Process-wide settings for a process that runs rsmb and nothing else.
 
     One OpenCV thread and one BLAS thread (tiles, not libraries, use the
-    cores), and on glibc arrays of 4 MiB and more served by mmap: glibc
+    cores), a short switch interval (:data:`SWITCH_INTERVAL`: threads that
+    released the GIL get it back sooner from a thread running Python), and
+    on glibc arrays of 4 MiB and more served by mmap: glibc
     otherwise raises its mmap threshold as large blocks are freed and keeps
     freed tile buffers in the heap, so the resident size grows with the number
     of tiles.  Below that size, freed memory stays in the heaps for the next
@@ -110,6 +117,7 @@ def configure_process():
     if _process_ready:
         return
     _process_ready = True
+    sys.setswitchinterval(SWITCH_INTERVAL)
     if sys.platform.startswith("linux"):
         try:
             libc = ctypes.CDLL("libc.so.6")

@@ -175,3 +175,18 @@ def test_a_local_run_does_not_import_dask_distributed():
             "print('distributed' in sys.modules)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_the_command_process_gets_a_short_switch_interval_a_library_caller_keeps_its_own():
+    import subprocess
+    import sys
+
+    before = sys.getswitchinterval()
+    Runner("threads", workers=2).map("local", abs, [(-i,) for i in range(4)])
+    assert sys.getswitchinterval() == before  # a library run leaves the interpreter as it was
+    code = ("import sys\n"
+            "from rsmb.pipeline._scheduler import SWITCH_INTERVAL, configure_process\n"
+            "configure_process()\n"
+            "print(sys.getswitchinterval() == SWITCH_INTERVAL < 0.005)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert proc.stdout.strip() == "True"
