@@ -297,9 +297,8 @@ def change_score(chi, registered, *, params=ChangeParams()):
         return np.abs(chi)
     registered = np.asarray(registered, dtype=np.float32)
     if chi.ndim != 2 or chi.shape != registered.shape:
-        score = np.abs(chi)
-        allowance = _second_differences(registered)
-        return np.maximum(score - np.float32(params.interpolation) * allowance, np.float32(0.0))
+        raise ParameterError(f"change_score: expected chi and registered of one (H, W) shape, got {chi.shape} "
+                             f"and {registered.shape}")
     out = np.empty(chi.shape, np.float32)
     _allowed_score(chi, registered, np.float32(params.interpolation), out)
     return out
@@ -307,10 +306,13 @@ def change_score(chi, registered, *, params=ChangeParams()):
 
 @numba.njit(nogil=True, cache=True)
 def _allowed_score(chi, image, k, out):
-    """:func:`change_score` in one pass, the same float32 arithmetic as
-    :func:`_second_differences` and ``np.maximum(|chi| - k * allowance,
-    0)`` (NaN kept) pixel by pixel, without their dozen whole-window
-    temporaries."""
+    """:func:`change_score` in one pass: ``max(|chi| - k * (|f_xx| + |f_yy|),
+    0)`` in float32 (NaN kept), ``f`` the registered ``image`` with 3-pixel
+    second differences, a neighbour beyond the image or unknown (NaN: a hole
+    in the model, a failed row) replaced by the pixel itself, as the image's
+    borders are replicated, and no allowance where the pixel itself is
+    unknown.  (Taking unknown as 0 would give the pixels around every hole an
+    allowance of their own value and hide their changes.)"""
     h, w = image.shape
     two, zero = np.float32(2.0), np.float32(0.0)
     for i in range(h):
@@ -330,26 +332,6 @@ def _allowed_score(chi, image, k, out):
                 allowance = along_y + abs((b - two * c) + a)
             x = abs(chi[i, j]) - k * allowance
             out[i, j] = x if (x >= zero or x != x) else zero
-
-
-def _second_differences(image):
-    """``|f_xx| + |f_yy|`` of ``image`` (3-pixel second differences), a
-    neighbour beyond the image or unknown (NaN: a hole in the model, a
-    failed row) replaced by the pixel itself, as the image's borders are
-    replicated; 0 where the pixel itself is unknown.  (Taking unknown as 0
-    would give the pixels around every hole an allowance of their own value
-    and hide their changes.)"""
-    known = np.isfinite(image)
-    centre = np.where(known, image, np.float32(0.0))
-    total = np.zeros(image.shape, np.float32)
-    for axis in (0, 1):
-        padded = np.pad(image, [(1, 1) if a == axis else (0, 0) for a in (0, 1)], mode="edge")
-        before = padded[:-2] if axis == 0 else padded[:, :-2]
-        after = padded[2:] if axis == 0 else padded[:, 2:]
-        before = np.where(np.isfinite(before), before, centre)
-        after = np.where(np.isfinite(after), after, centre)
-        total += np.abs(before - 2 * centre + after)
-    return np.where(known, total, np.float32(0.0))
 
 
 def change_candidates(score, threshold, *, params=ChangeParams()):

@@ -442,6 +442,27 @@ def test_a_hole_in_the_model_is_a_border_not_a_dark_pixel():
     np.testing.assert_allclose(score[[79, 81], 74:86], np.abs(chi[[79, 81], 74:86]), rtol=1e-6)
 
 
+def _second_differences(image):
+    """The interpolation allowance's rule written with whole arrays:
+    ``|f_xx| + |f_yy|`` of ``image`` (3-pixel second differences), a
+    neighbour beyond the image or unknown (NaN: a hole in the model, a
+    failed row) replaced by the pixel itself, as the image's borders are
+    replicated; 0 where the pixel itself is unknown.  (Taking unknown as 0
+    would give the pixels around every hole an allowance of their own value
+    and hide their changes.)"""
+    known = np.isfinite(image)
+    centre = np.where(known, image, np.float32(0.0))
+    total = np.zeros(image.shape, np.float32)
+    for axis in (0, 1):
+        padded = np.pad(image, [(1, 1) if a == axis else (0, 0) for a in (0, 1)], mode="edge")
+        before = padded[:-2] if axis == 0 else padded[:, :-2]
+        after = padded[2:] if axis == 0 else padded[:, 2:]
+        before = np.where(np.isfinite(before), before, centre)
+        after = np.where(np.isfinite(after), after, centre)
+        total += np.abs(before - 2 * centre + after)
+    return np.where(known, total, np.float32(0.0))
+
+
 @pytest.mark.parametrize("seed", range(8))
 def test_change_score_is_its_numpy_rule_bit_for_bit(seed):
     """The one-pass kernel against the rule written with whole arrays:
@@ -449,8 +470,6 @@ def test_change_score_is_its_numpy_rule_bit_for_bit(seed):
     neighbour beyond the window or unknown (NaN, inf) replaced by the pixel,
     0 allowance on an unknown pixel, NaN chi kept; every byte equal, windows
     of one row or column included."""
-    from rsmb.ops.changes._changes import _second_differences
-
     rng = np.random.default_rng(seed)
     h, w = [(1, 17), (23, 1), (31, 40), (64, 64)][seed % 4]
     registered = (rng.uniform(-2, 2, (h, w)) * 10.0 ** rng.uniform(-3, 3)).astype(np.float32)
@@ -464,6 +483,11 @@ def test_change_score_is_its_numpy_rule_bit_for_bit(seed):
                       np.float32(0.0))
     got = change_score(chi, registered, params=params)
     assert got.dtype == np.float32 and got.shape == (h, w) and got.tobytes() == want.tobytes()
+
+
+def test_change_score_of_unlike_shapes_is_refused():
+    with pytest.raises(ParameterError, match="one \\(H, W\\) shape"):
+        change_score(np.zeros((4, 5), np.float32), np.zeros((5, 4), np.float32))
 
 
 def test_model_values_are_the_registered_image_anywhere():
