@@ -3,9 +3,9 @@ a gain that varies across a row (vignetting, a slow gradient over a wide-area
 mosaic) is fitted as a slope, divided out of the capture before the rows are
 solved again, and folded back into the registered image."""
 
+import numba
 import numpy as np
 
-from .._oracle import optimal_chi
 
 __all__ = []
 
@@ -50,27 +50,52 @@ def _column_gain_guess(ref, dist, dvalid, ref_origin, dist_origin, blocks=16):
 
 def _gain_slope(out, dist, delta, iterations=8):
     """Fit ``g = R (1 + b u)`` (u the column offset from the window centre) by
-    iteratively reweighted Huber regression: the factor ``1 + b u`` per column,
-    or None without enough pixels or for a slope that would flip the sign."""
+    iteratively reweighted Huber regression on every other row: the factor
+    ``1 + b u`` per column, or None without enough pixels or for a slope that
+    would flip the sign."""
     valid = out.valid & np.isfinite(out.registered)
     if valid.sum() < 100:
         return None
     u = _column_offsets(dist.shape[1])
-    sample = valid.copy()
-    sample[1::2] = False  # every other row is plenty for one parameter
-    reg = out.registered[sample].astype(np.float64)
-    y = dist[sample] - reg
-    z = reg * np.broadcast_to(u, dist.shape)[sample]
-    b = 0.0
-    for _ in range(iterations):
-        r = y - b * z
-        wts = np.minimum(1.0, delta / np.maximum(np.abs(r), 1e-12))
-        den = float(np.sum(wts * z * z))
-        if den <= 0:
-            return None
-        b = float(np.sum(wts * z * y)) / den
+    b = _huber_slope(out.registered, valid, dist, u, float(delta), iterations)
+    if not np.isfinite(b):
+        return None
     factor = 1.0 + b * u
     return factor if factor.min() > 0.25 else None
+
+
+@numba.njit(nogil=True, cache=True)
+def _huber_slope(registered, valid, dist, u, delta, iterations):
+    """:func:`_gain_slope`'s ``b``, in float64, over the ``valid`` pixels of
+    rows 0, 2, 4...: the residual ``y = dist - registered`` against
+    ``z = registered * u``, each of ``iterations`` rounds weighting a pixel
+    ``min(1, delta / |y - b z|)`` (Huber) and solving for ``b``; NaN when the
+    weighted ``z`` vanish."""
+    height, width = dist.shape
+    n = 0
+    for i in range(0, height, 2):
+        for j in range(width):
+            n += valid[i, j]
+    y, z = np.empty(n), np.empty(n)
+    k = 0
+    for i in range(0, height, 2):
+        for j in range(width):
+            if valid[i, j]:
+                reg = np.float64(registered[i, j])
+                y[k] = dist[i, j] - reg
+                z[k] = reg * u[j]
+                k += 1
+    b = 0.0
+    for _ in range(iterations):
+        num, den = 0.0, 0.0
+        for k in range(n):
+            w = min(1.0, delta / max(abs(y[k] - b * z[k]), 1e-12))
+            den += w * z[k] * z[k]
+            num += w * z[k] * y[k]
+        if not den > 0:
+            return np.nan
+        b = num / den
+    return b
 
 
 def _column_offsets(width):
@@ -80,8 +105,27 @@ def _column_offsets(width):
 
 def _fold_gain(out, dist, factor, delta):
     """Multiply the registered image by the per-column gain ``factor`` and
-    recompute the change term."""
-    valid = out.valid & np.isfinite(out.registered)
-    out.registered = np.where(valid, out.registered * factor, out.registered).astype(np.float32)
-    r = dist - out.registered
-    out.chi = optimal_chi(np.where(valid, r, 0.0), lambda_chi=2 * delta).astype(np.float32)
+    recompute the change term (``chi`` soft-thresholded at ``delta``, 0 where
+    the registration has no value)."""
+    registered, chi = out.registered.astype(np.float32), np.empty(dist.shape, np.float32)
+    _fold(registered, out.valid, dist, np.asarray(factor, np.float64), float(delta), chi)
+    out.registered, out.chi = registered, chi
+
+
+@numba.njit(nogil=True, cache=True)
+def _fold(registered, valid, dist, factor, delta, chi):
+    """:func:`_fold_gain` in one pass, in place: where ``valid`` and finite,
+    ``registered *= factor`` (per column, rounded to float32 once) and
+    ``chi = sign(r) max(|r| - delta, 0)`` of ``r = dist - registered``;
+    elsewhere ``chi = 0``."""
+    height, width = dist.shape
+    for i in range(height):
+        for j in range(width):
+            value = registered[i, j]
+            if valid[i, j] and np.isfinite(value):
+                value = np.float32(value * factor[j])
+                registered[i, j] = value
+                r = dist[i, j] - value
+                chi[i, j] = np.sign(r) * max(abs(r) - delta, 0.0)
+            else:
+                chi[i, j] = 0.0
