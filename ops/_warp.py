@@ -195,9 +195,12 @@ def _warp_into(src, poses6, focal, cx, cy, oy, ox, out):
     The arithmetic of :func:`_build_row` with one pose, written straight
     into ``out``; where the pose keeps the image plane (no rx, ry: the
     homography's last row is (0, 0, 1)) its division by 1 is left out, which
-    changes no bit."""
+    changes no bit.  A row's sample points are computed first, in a loop of
+    their own (no memory reads: it vectorises, the division included), then
+    sampled: the same operations on the same values as one loop doing both."""
     rows, width = out.shape
     m, tx, ty, sc = _inverse_map(poses6[0], focal, cx, cy)
+    us, vs = np.empty(width), np.empty(width)
     for q in range(rows):
         if poses6.shape[0] > 1:
             m, tx, ty, sc = _inverse_map(poses6[q], focal, cx, cy)
@@ -205,8 +208,12 @@ def _warp_into(src, poses6, focal, cx, cy, oy, ox, out):
         h0, h1, h2, d0, d1, d2 = _row_line(m, tx, ty, sc, oy + q, ox, cx, cy)
         if d2 == 0.0 and h2 == 1.0:
             for j in range(width):
-                row[j] = _bilinear(src, (h0 + j * d0) + cx, (h1 + j * d1) + cy)
+                us[j] = (h0 + j * d0) + cx
+                vs[j] = (h1 + j * d1) + cy
         else:
             for j in range(width):
                 inv = 1.0 / (h2 + j * d2)
-                row[j] = _bilinear(src, (h0 + j * d0) * inv + cx, (h1 + j * d1) * inv + cy)
+                us[j] = (h0 + j * d0) * inv + cx
+                vs[j] = (h1 + j * d1) * inv + cy
+        for j in range(width):
+            row[j] = _bilinear(src, us[j], vs[j])
