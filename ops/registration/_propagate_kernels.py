@@ -34,7 +34,7 @@ _SUMS = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})
 #: :mod:`ops.registration._rowsolve` or of :func:`ops._warp._warp_into` (and
 #: what it calls) raises this number, or a checkout that ran the old code
 #: keeps running it here.
-ROWSOLVE_REVISION = 11
+ROWSOLVE_REVISION = 12
 
 #: A row whose centroid moves the window's farthest pixel more than this (px)
 #: away from where the path before it leads (its last pose plus its velocity)
@@ -224,10 +224,22 @@ def _lattice_columns(source, g_valid, a):
     for k in range(k_count):
         lo, hi = min(lo, sx[k]), max(hi, sx[k])
     width = n + hi - lo
-    first = np.full(stack.shape[0] * hr, -1, np.int64)  # (slot, row) -> distinct row
     row_of, col_of = np.zeros(k_count, np.int64), np.empty(k_count, np.int64)
     pick = np.empty(k_count, np.int64)
     valid = g_valid.copy()
+    # (slot, row) -> distinct row, in a table over the slots and the rows
+    # this row's poses read only (a few of each), numbered in pose order
+    used = np.full(stack.shape[0], -1, np.int64)  # slot -> its place among the slots read
+    slots, r_lo, r_hi = 0, hr, -1
+    for k in range(k_count):
+        r = source.y - sy[k]
+        if 0 <= r < hr:
+            if used[slot[k]] < 0:
+                used[slot[k]] = slots
+                slots += 1
+            r_lo, r_hi = min(r_lo, r), max(r_hi, r)
+    span = max(r_hi - r_lo + 1, 0)
+    first = np.full(slots * span, -1, np.int64)
     distinct = 0
     for k in range(k_count):
         r = source.y - sy[k]
@@ -235,22 +247,27 @@ def _lattice_columns(source, g_valid, a):
         if r < 0 or r >= hr:  # a pose above or below the band: no pixel is valid
             valid[:] = False
             continue
-        key = slot[k] * hr + r
+        key = used[slot[k]] * span + r - r_lo
         if first[key] < 0:
             first[key] = distinct
-            pick[distinct] = key
+            pick[distinct] = slot[k] * hr + r
             distinct += 1
         row_of[k] = first[key]
-    src = np.zeros((max(distinct, 1), width), np.float32)
+    src = np.empty((max(distinct, 1), width), np.float32)
     x0 = source.x0 - hi
-    good = np.ones((max(distinct, 1), width), np.bool_)  # False on no-data and beyond the image
+    good = np.empty((max(distinct, 1), width), np.bool_)  # False on no-data and beyond the image
     spoilt = np.zeros(max(distinct, 1), np.bool_)
     inside_lo = min(max(-x0, 0), width)  # columns [inside_lo, inside_hi) lie inside the image
     inside_hi = max(min(wr - x0, width), inside_lo)
+    if distinct == 0:
+        src[:] = 0.0
+        good[:] = True
     for q in range(distinct):
         img = stack[pick[q] // hr, pick[q] % hr]
         if inside_lo > 0 or inside_hi < width:
             spoilt[q] = True
+            src[q, :inside_lo] = 0.0
+            src[q, inside_hi:] = 0.0
             good[q, :inside_lo] = False
             good[q, inside_hi:] = False
         if _copy_finite(img[x0 + inside_lo:x0 + inside_hi], src[q, inside_lo:inside_hi],
@@ -263,16 +280,15 @@ def _lattice_columns(source, g_valid, a):
 
 @numba.njit(**_JIT)
 def _copy_finite(img, out, good):
-    """``out`` = ``img`` where it is finite (left as it is at NaN, no-data),
-    ``good`` = where it is; returns whether any was NaN.  One branch-free
-    loop over the row (vectorised), where a test of bounds and NaN per pixel
-    was not."""
+    """``out`` = ``img`` where it is finite, 0 at NaN (no-data), ``good`` =
+    where it is finite; returns whether any was NaN.  One branch-free loop
+    over the row (vectorised), where a test of bounds and NaN per pixel was
+    not."""
     nan = 0
     for c in range(img.shape[0]):
         v = img[c]
         ok = not math.isnan(v)
-        if ok:
-            out[c] = v
+        out[c] = v if ok else np.float32(0.0)
         good[c] = ok
         nan += 0 if ok else 1
     return nan > 0
