@@ -163,13 +163,23 @@ def score_histogram(residual, score, valid):
     """
     residual_counts = np.zeros(RESIDUAL_BINS, np.int64)
     score_counts = np.zeros(SCORE_BINS, np.int64)
-    _histograms(np.asarray(residual), np.asarray(score), np.asarray(valid, bool), _RESIDUAL_EDGES, _SCORE_EDGES,
-                _RESIDUAL_GUESS, residual_counts, score_counts)
+    residual = np.asarray(residual)
+    if residual.dtype != np.float32:
+        residual = residual.astype(np.float64, copy=False)
+    bits = residual.view(np.int32 if residual.dtype == np.float32 else np.int64)
+    _histograms(residual, bits, _FLOAT_LAYOUT[residual.dtype.itemsize], np.asarray(score), np.asarray(valid, bool),
+                _RESIDUAL_EDGES, _SCORE_EDGES, _RESIDUAL_GUESS, residual_counts, score_counts)
     return ScoreHistogram(residual_counts, score_counts)
 
 
-#: Cells per octave of :data:`_RESIDUAL_GUESS` (narrower than a residual bin).
+#: Cells per octave of :data:`_RESIDUAL_GUESS` (narrower than a residual bin):
+#: the leading 8 bits of a float's fraction.
 _GUESS_CELLS = 256
+
+#: Where a float's binary exponent and fraction lie in its bits, by its size
+#: in bytes: (exponent shift, exponent mask, exponent bias, shift that leaves
+#: the fraction's leading log2(_GUESS_CELLS) bits), IEEE 754 binary32 and binary64.
+_FLOAT_LAYOUT = {4: (23, 0xFF, 127, 23 - 8), 8: (52, 0x7FF, 1023, 52 - 8)}
 
 
 def _residual_guesses(edges, cells=_GUESS_CELLS):
@@ -191,18 +201,22 @@ _RESIDUAL_GUESS = _residual_guesses(_RESIDUAL_EDGES)
 
 
 @numba.njit(nogil=True, cache=True)
-def _histograms(residual, score, valid, residual_edges, score_edges, residual_guess, residual_counts, score_counts):
+def _histograms(residual, bits, layout, score, valid, residual_edges, score_edges, residual_guess, residual_counts,
+                score_counts):
     """:func:`score_histogram`'s counts in one pass, as ``np.histogram`` counts
     them: ``|residual|`` clipped to the last residual edge, the score's positive
     values clipped to the last score edge; bins closed on the left, the last
     one on both sides; NaN is not counted.  A value's bin is found from where
     its binary exponent and mantissa put it (``residual_guess``:
-    :func:`_residual_guesses`, no logarithm per pixel) or the score's even
-    spacing does, then checked against the edges themselves."""
+    :func:`_residual_guesses`, read from the residual's ``bits`` as
+    ``layout`` (:data:`_FLOAT_LAYOUT`) places them: no logarithm per pixel) or
+    the score's even spacing does, then checked against the edges themselves."""
     height, width = valid.shape
     r_last, s_last = residual_edges[-1], score_edges[-1]
     r_first = residual_edges[1]
     table, e_lo = residual_guess
+    exp_shift, exp_mask, exp_bias, frac_shift = layout
+    last = residual_edges.shape[0] - 2
     s_per_unit = (score_edges.shape[0] - 1) / (s_last - score_edges[0])
     for i in range(height):
         for j in range(width):
@@ -210,12 +224,16 @@ def _histograms(residual, score, valid, residual_edges, score_edges, residual_gu
                 continue
             r = abs(np.float64(residual[i, j]))
             if r == r:
-                r = min(r, r_last)
-                guess = 0
-                if r >= r_first:
-                    m, e = math.frexp(r)
-                    guess = table[(e - e_lo) * _GUESS_CELLS + int((m - 0.5) * (2 * _GUESS_CELLS))]
+                guess = last
+                if r >= r_last:
+                    r = r_last
+                elif r >= r_first:
+                    b = bits[i, j]  # r = m 2**e, m in [0.5, 1) (math.frexp's e and m) from the bits
+                    e = ((b >> exp_shift) & exp_mask) - exp_bias + 1
+                    guess = table[(e - e_lo) * _GUESS_CELLS + ((b >> frac_shift) & (_GUESS_CELLS - 1))]
                     guess += r >= residual_edges[guess + 1]  # a cell meets two bins at most: no branch
+                else:
+                    guess = 0
                 residual_counts[_bin(residual_edges, r, guess)] += 1
             c = np.float64(score[i, j])
             if c > 0:

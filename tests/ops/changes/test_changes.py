@@ -215,16 +215,25 @@ def test_noise_threshold_of_summed_tiles_is_that_of_the_whole():
     assert change_threshold(total) == change_threshold(whole)
 
 
-def test_histograms_are_numpys_at_every_edge_and_clip_level():
-    """The bins found from the edges' spacing are np.histogram's, for values
-    exactly on every edge, beyond the last one (clipped to it), NaN and off
-    the valid pixels (not counted), over ten decades of residual."""
+@pytest.mark.parametrize("dtype, strided", [(np.float32, False), (np.float64, False), (np.float32, True),
+                                             (np.float64, True), (np.int16, False)])
+def test_histograms_are_numpys_at_every_edge_and_clip_level(dtype, strided):
+    """The bins found from the edges' spacing (the residual's bits, as its
+    float type lays them out) are np.histogram's, for values exactly on every
+    edge, beyond the last one (clipped to it), NaN and off the valid pixels
+    (not counted), over ten decades of residual; a strided residual, and an
+    integer one, counted as float64."""
     rng = np.random.default_rng(11)
-    residual = (rng.standard_normal((64, 64)) * 10.0 ** rng.uniform(-8, 1, (64, 64))).astype(np.float32)
+    residual = (rng.standard_normal((64, 128)) * 10.0 ** rng.uniform(-8, 1, (64, 128))).astype(np.float64)
     score = np.abs(rng.standard_normal((64, 64)) * 2.5).astype(np.float32)
-    residual.flat[:len(_RESIDUAL_EDGES)] = _RESIDUAL_EDGES
+    residual.flat[:2 * len(_RESIDUAL_EDGES):2] = _RESIDUAL_EDGES  # on the even columns, which the strided case keeps
     score.flat[:len(_SCORE_EDGES)] = _SCORE_EDGES
     residual.flat[::97], score.flat[::89] = np.nan, np.nan
+    if np.issubdtype(dtype, np.integer):
+        residual = np.nan_to_num(residual * 1000.0).clip(-30000, 30000)
+    residual = residual.astype(dtype)[:, ::2]  # every other column: a view with strides
+    if not strided:
+        residual = np.ascontiguousarray(residual)
     valid = rng.random((64, 64)) < 0.9
     hist = score_histogram(residual, score, valid)
     r = np.abs(residual[valid].astype(np.float64))
