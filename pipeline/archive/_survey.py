@@ -5,8 +5,7 @@ glob finds are paired with the reference set by footprint and run through
 :func:`detect`, several at once on one runner (one executor or cluster for the
 night, so the cores stay busy while a capture finishes its tail; a capture's
 products and report are written outside the ``parallel`` captures being
-detected, so the next capture's tasks run meanwhile; the reports by a child
-process, :mod:`._report_process`).  Per capture,
+detected, so the next capture's tasks run meanwhile).  Per capture,
 under ``OUT_DIR/captures/<path relative to the glob's fixed prefix>/`` (the
 capture's file name, suffix included, is its folder's: names mirror the
 captures' tree, where no file holds another, so ``a.tif`` and ``a/b.tif``,
@@ -48,7 +47,6 @@ from ..detection._detect import detect
 from ..detection._plan import VERSION, DetectConfig
 from ._history import MASK_NAME
 from ._ledger import LEDGER_NAME, SETTLE, FileStat, Ledger, RunKey
-from ._report_process import ReportProcess
 from ..detection._outputs import write_products
 from .._scheduler import WORKER_TIMEOUT, check_scheduler, open_runner
 
@@ -239,8 +237,7 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
     dry_run : bool
         Say what would run and why; write nothing.
     report : bool
-        Write each capture's ``report/`` (by a child process, one report at
-        a time: :mod:`._report_process`).
+        Write each capture's ``report/``.
     settle : float
         Seconds: a capture modified less long ago is still being written and
         waits for the next night (``skipped``, reason ``still being
@@ -453,12 +450,10 @@ def _run_all(ledger, todo, out, references, config, run, stop):
     runner = stack.enter_context(open_runner(run["scheduler"], workers=run["workers"], shared=True, progress=False,
                                              worker_timeout=run["worker_timeout"]))
     log.info("survey: %d capture(s) to run, %d at once, on %s", total, parallel, runner.describe())
-    # the reports by a process of their own: their Python would hold the lock the tile tasks need
-    reports = ReportProcess() if run["report"] else None
     driver = ThreadPoolExecutor(parallel + cores + 1)
     interrupted = False
     try:
-        futures = {driver.submit(_run_capture, capture, name, out, references, config, runner, reports, slots,
+        futures = {driver.submit(_run_capture, capture, name, out, references, config, runner, run["report"], slots,
                                  st, stop, run["observed"]): (capture, name, run_id, why)
                    for capture, name, run_id, why, st in todo}
         pending, count, deadline = set(futures), 0, None
@@ -477,17 +472,11 @@ def _run_all(ledger, todo, out, references, config, run, stop):
     except BaseException:
         driver.shutdown(wait=False, cancel_futures=True)
         stop.abandoned.set()
-        if reports is not None:
-            reports.close(kill=True)
         raise
     if interrupted:
         driver.shutdown(wait=False, cancel_futures=True)  # the runner and its tasks end with the process
-        if reports is not None:  # its report process does not: killed and waited for now
-            reports.close(kill=True)
     else:
         driver.shutdown(wait=True)
-        if reports is not None:
-            reports.close()
         stack.close()
     return results
 
@@ -544,10 +533,9 @@ def _fail(ledger, run_id, capture, exc, seconds):
     return CaptureResult(str(capture), "failed", reason, seconds=seconds or 0.0)
 
 
-def _run_capture(capture, name, out, references, config, runner, reports, slots, st, stop, observed):
+def _run_capture(capture, name, out, references, config, runner, report, slots, st, stop, observed):
     """One capture, built aside and renamed into place: its store, products,
-    thumbnail and report (by ``reports``, a :class:`ReportProcess`; None:
-    no report).  Runs in a driver thread; its tasks on ``runner``;
+    thumbnail and report.  Runs in a driver thread; its tasks on ``runner``;
     its detection holds one of ``slots`` (a semaphore), its products and
     report none.  A failure leaves nothing behind; so does a capture whose
     size or modification time now differs from ``st`` (its stat when it was
@@ -563,7 +551,7 @@ def _run_capture(capture, name, out, references, config, runner, reports, slots,
     aside.mkdir(parents=True)
     try:
         folder = out / CAPTURES / name
-        features, read = _build(capture, aside, folder, references, config, runner, reports, slots)
+        features, read = _build(capture, aside, folder, references, config, runner, report, slots)
         mask = _read_observation(aside / MASK_NAME)
         _check_unchanged(capture, st)
         if stop.abandoned.is_set():  # the night gave up on it: it places nothing now
@@ -601,11 +589,10 @@ def _check_unchanged(capture, st):
                          f"recorded as done; it runs again next night")
 
 
-def _build(capture, aside, folder, references, config, runner, reports, slots):
+def _build(capture, aside, folder, references, config, runner, report, slots):
     """The capture's products in ``aside`` (to become ``folder``): returns its
     change polygons and the reference files read.  The detection holds one of
-    ``slots`` (a semaphore); the report is written by ``reports`` (None: no
-    report)."""
+    ``slots`` (a semaphore)."""
     store = aside / "changes.zarr"
     with slots:
         summary = detect(references, capture, store, config=config, runner=runner)
@@ -621,8 +608,10 @@ def _build(capture, aside, folder, references, config, runner, reports, slots):
     from ._survey_html import write_thumbnail
 
     write_thumbnail(group, aside / "thumbnail.png")
-    if reports is not None:
-        reports.write(store, aside / "report")
+    if report:
+        from ..report._report import write_report
+
+        write_report(store, aside / "report")
     return features, group.attrs["pairing"].get("read", [])
 
 

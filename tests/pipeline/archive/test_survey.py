@@ -265,45 +265,35 @@ def test_new_and_changed_captures_run_alone(tmp_path, monkeypatch):
 def test_the_next_capture_is_detected_while_one_writes_its_report(tmp_path, monkeypatch):
     """--parallel 1 counts captures being detected, not captures writing their
     report: with a report that takes a second, the next capture's detection
-    runs meanwhile, and no two detections ever overlap.  The reports are
-    written by one other process, one at a time, and are real reports."""
+    runs meanwhile, and no two detections ever overlap."""
     import threading
 
-    from rsmb.pipeline.archive import _report_process
-
-    from . import report_workers
+    from rsmb.pipeline.report import _report
 
     references, night = _night(tmp_path, _scene(), bad=False)
-    spans, lock = [], threading.Lock()
+    spans, lock = {"detect": [], "report": []}, threading.Lock()
 
-    def timed(func):
+    def timed(kind, func, pause=0.0):
         def run(*args, **kwargs):
-            start = time.monotonic()  # the system's clock: the child's spans are on it too
+            start = time.perf_counter()
             try:
+                time.sleep(pause)
                 return func(*args, **kwargs)
             finally:
                 with lock:
-                    spans.append((start, time.monotonic()))
+                    spans[kind].append((start, time.perf_counter()))
         return run
 
-    monkeypatch.setattr(survey_module, "detect", timed(survey_module.detect))
-    monkeypatch.setattr(_report_process, "_write_report", report_workers.slow)
-    monkeypatch.setenv(report_workers.LOG, str(tmp_path / "reports.jsonl"))
-    monkeypatch.setenv(report_workers.PAUSE, "1.0")
+    monkeypatch.setattr(survey_module, "detect", timed("detect", survey_module.detect))
+    monkeypatch.setattr(_report, "write_report", timed("report", _report.write_report, pause=1.0))
     result = survey_module.survey(references, str(night / "**" / "*.tif"), tmp_path / "out", parallel=1,
                                   settle=0)
-    reports = report_workers.read_log(tmp_path / "reports.jsonl")
-    assert result.done == 3 and len(spans) == 3 and len(reports) == 3
-    assert {r["pid"] for r in reports} != {os.getpid()} and len({r["pid"] for r in reports}) == 1
-    for capture in result.captures:
-        assert (Path(capture.output) / "report" / "index.html").is_file()
-    detections = sorted(spans)
+    assert result.done == 3 and len(spans["detect"]) == 3 and len(spans["report"]) == 3
+    detections = sorted(spans["detect"])
     assert all(a[1] <= b[0] for a, b in zip(detections, detections[1:]))  # one at a time
-    written = sorted((r["start"], r["end"]) for r in reports)
-    assert all(a[1] <= b[0] for a, b in zip(written, written[1:]))  # one report at a time
     # a detection and a report run at the same time (serially, each report would
     # end before the next detection starts; which of the two starts first is a race)
-    assert any(d0 < r1 and r0 < d1 for d0, d1 in detections for r0, r1 in written)
+    assert any(d0 < r1 and r0 < d1 for d0, d1 in detections for r0, r1 in spans["report"])
 
 
 def test_the_history_reads_each_mask_as_its_capture_ends(tmp_path, monkeypatch):
