@@ -35,7 +35,7 @@ from ._archive import CaptureSpec, write_capture, write_reference
 from ..detection._detect import detect
 from .._evaluate import evaluate
 
-__all__ = ["bench_survey"]
+__all__ = ["bench_survey", "stage_cpu_per_megapixel"]
 
 PAIRING_CASES = {
     "larger mosaic": {},
@@ -208,6 +208,22 @@ def bench_pairing(data, workdir, *, size=512):
     return out
 
 
+def stage_cpu_per_megapixel(stores):
+    """The tile tasks' CPU-seconds per megapixel by stage (the stores'
+    ``summary.timings.cpu_s``, :data:`~rsmb.pipeline.detection._detect.CPU_STAGES`
+    and ``total``) summed over ``stores`` (detect stores) and divided by
+    their pixels: where a night's small captures spend more per megapixel
+    than one large capture (a start search and a slow part per capture) and
+    where less."""
+    totals, pixels = {}, 0
+    for store in stores:
+        group = tiles.open_result_store(store)
+        for stage, seconds in group.attrs["summary"]["timings"]["cpu_s"].items():
+            totals[stage] = totals.get(stage, 0.0) + float(seconds)
+        pixels += int(np.prod(group["change_mask"].shape))
+    return {stage: seconds / (pixels / 1e6) for stage, seconds in totals.items()} if pixels else {}
+
+
 def bench_night(data, workdir, *, captures=8, side=1024, detect_side=4096):
     """A night of ``captures`` captures against one large detect, end to end.
 
@@ -255,6 +271,9 @@ def bench_night(data, workdir, *, captures=8, side=1024, detect_side=4096):
     out["detect_cpu_s_per_megapixel"] = detect_cpu / (detect_side ** 2 / 1e6)
     out["cpu_ratio"] = out["detect_cpu_s_per_megapixel"] / out["night_cpu_s_per_megapixel"]
     out["rerun_cpu_s"] = rerun_cpu  # the night's own fixed cost: start, imports, decisions, end of night
+    out["night_stage_cpu_s_per_megapixel"] = stage_cpu_per_megapixel(
+        [c["output"] + "/changes.zarr" for c in summary["captures"] if c["status"] == "done"])
+    out["detect_stage_cpu_s_per_megapixel"] = stage_cpu_per_megapixel([work / "large.zarr"])
     _echo(f"survey night ({source}): {captures} captures of {side} x {side} in {night_s:.1f} s end to end "
           f"({out['night_megapixels_per_s']:.2f} MP/s, {out['done']} done, F >= {out['f_measure_min']:.3f}) vs "
           f"rsmb detect on one {detect_side} x {detect_side} capture of the same scene {detect_s:.1f} s "
@@ -264,6 +283,14 @@ def bench_night(data, workdir, *, captures=8, side=1024, detect_side=4096):
           f"{out['night_cpu_s_per_megapixel']:.2f}, detect {out['detect_cpu_s_per_megapixel']:.2f}: the night's rate "
           f"per CPU-second {100 * out['cpu_ratio']:.0f} % of detect's; the night again (nothing to run) "
           f"{rerun_cpu:.1f} CPU-s")
+    night, large = out["night_stage_cpu_s_per_megapixel"], out["detect_stage_cpu_s_per_megapixel"]
+    if night and large:  # the rest of each command's CPU is outside the tile tasks: products, report, I/O, imports
+        stages = sorted((s for s in large if s != "total"), key=lambda s: -abs(night.get(s, 0.0) - large[s]))
+        _echo("survey night, tile tasks' CPU-seconds per megapixel by stage, night vs detect: total "
+              f"{night.get('total', 0.0):.2f} vs {large['total']:.2f} ("
+              + ", ".join(f"{s} {night.get(s, 0.0):.3f} vs {large[s]:.3f}" for s in stages[:6]) + "); outside "
+              f"the tile tasks {out['night_cpu_s_per_megapixel'] - night.get('total', 0.0):.2f} vs "
+              f"{out['detect_cpu_s_per_megapixel'] - large['total']:.2f}")
     return out
 
 
