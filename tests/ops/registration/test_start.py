@@ -9,8 +9,8 @@ import pytest
 
 from rsmb import ops
 from rsmb.ops.registration._rowproblem import _centroid, _RowProblem, _shift_margin, _Solver
-from rsmb.ops.registration._start import (SHARED_ROWS, _block_space, _carried, _choose_start, _refine, _refine_start,
-                                          _shared_start)
+from rsmb.ops.registration._start import (SHARED_ROWS, _block_space, _carried, _choose_start, _median, _refine,
+                                          _refine_start, _shared_start)
 
 
 def _solver(seed=3, size=192):
@@ -213,3 +213,16 @@ def test_a_start_that_is_no_start_pose_is_refused_before_any_work():
     pair, params, (_, right) = _band()
     with pytest.raises(ops.ParameterError, match="start: expected a StartPose"):
         ops.register(camera=pair.camera, params=params, start=(100, (0.0, 0.0, 0.0)), **right)
+
+
+@pytest.mark.parametrize("size", [7, 9000, 20001, 20000])
+@pytest.mark.parametrize("kind", ["normal", "ties", "skewed", "constant"])
+def test_median_equals_numpys(size, kind):
+    """The bracketing selection gives np.median's value bit for bit, odd and
+    even sizes, with ties and with a sample that misses the middle."""
+    rng = np.random.default_rng(size)
+    values = {"normal": rng.standard_normal(size), "ties": rng.integers(0, 5, size) * 0.25,
+              "skewed": np.where(rng.random(size) < 0.5, rng.exponential(size=size), 1e6 + rng.random(size)),
+              "constant": np.full(size, 0.3)}[kind].astype(np.float32)
+    assert _median(values) == float(np.median(values))
+    assert _median(values.astype(np.float64)) == float(np.median(values.astype(np.float64)))
