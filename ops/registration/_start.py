@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import scipy.fft
 
 from .._camera import full_poses
 from .._errors import ParameterError
@@ -136,6 +137,7 @@ def _coarse_search(problem, params, rows, count=4):
         rz_values = list(np.linspace(-search["rz"], search["rz"], 2 * n + 1))
         uncertainty[axes.index("rz")] = search["rz"] / (2 * n) if n else 0.0
     band = np.arange(r0 - margin_y, r1 + margin_y)
+    correlations = [_Correlation(t, (band.size, width)) for t in templates]
     peaks = []
     img = np.empty((band.size, width), dtype=np.float32)
     for rz in rz_values:
@@ -145,7 +147,7 @@ def _coarse_search(problem, params, rows, count=4):
         poses = pose if problem.slow is None else pose + problem.slow.pose6(band)
         _warp_into(problem.ref, poses, problem.focal, problem.cx, problem.cy, float(band[0] + problem.dy),
                    float(problem.dx), img)
-        score = sum(cv2.matchTemplate(i, t, cv2.TM_CCOEFF_NORMED) for i, t in zip(_gradients(img), templates))
+        score = sum(c.scores(i) for i, c in zip(_gradients(img), correlations))
         for peak, (x, y) in _local_maxima(score, 2):
             peaks.append((peak, margin_x - x, margin_y - y, rz))
     peaks.sort(key=lambda p: -p[0])
@@ -158,6 +160,41 @@ def _coarse_search(problem, params, rows, count=4):
         if len(out) == count:
             break
     return out or [np.zeros(len(axes))], uncertainty
+
+
+class _Correlation:
+    """``cv2.matchTemplate(image, template, cv2.TM_CCOEFF_NORMED)`` for many
+    images of one shape against one template, with the template's spectrum
+    and norm computed once (OpenCV transforms the template again on every
+    call, one of its three transforms): the cross-correlation by a float32
+    FFT, the windows' sums and sums of squares from float64 integral images,
+    and OpenCV's rule where the normalised score leaves [-1, 1] by rounding."""
+
+    def __init__(self, template, shape):
+        self.th, self.tw = template.shape
+        self.out = (shape[0] - self.th + 1, shape[1] - self.tw + 1)
+        # rows padded to a fast length no shorter than the image's: the
+        # circular correlation then equals the linear one at every output
+        self.rows = cv2.getOptimalDFTSize(shape[0])
+        centred = template.astype(np.float64) - float(np.mean(template, dtype=np.float64))
+        self.norm = float(np.sqrt(np.sum(centred * centred)))
+        padded = np.zeros((self.rows, shape[1]), np.float32)
+        padded[:self.th, :self.tw] = centred
+        self.spectrum = np.conj(scipy.fft.fft(scipy.fft.rfft(padded, axis=1), axis=0))
+
+    def scores(self, image):
+        """The normalised score map, float32, shape (H - h + 1, W - w + 1)."""
+        (oh, ow), th, tw = self.out, self.th, self.tw
+        spectrum = scipy.fft.fft(scipy.fft.rfft(image, axis=1), n=self.rows, axis=0)
+        # only the output's rows are transformed back
+        num = scipy.fft.irfft(scipy.fft.ifft(spectrum * self.spectrum, axis=0)[:oh], n=image.shape[1], axis=1)
+        num = num[:, :ow].astype(np.float64)
+        sums = cv2.integral2(image, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
+        s, sq = (i[th:th + oh, tw:tw + ow] - i[:oh, tw:tw + ow] - i[th:th + oh, :ow] + i[:oh, :ow] for i in sums)
+        t = np.sqrt(np.maximum(sq - s * s / (th * tw), 0.0)) * self.norm
+        a = np.abs(num)
+        out = np.where(a < t, num / np.where(t > 0, t, 1.0), np.where(a < t * 1.125, np.sign(num), 0.0))
+        return out.astype(np.float32)
 
 
 def _local_maxima(score, count, radius=3):

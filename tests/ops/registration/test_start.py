@@ -4,13 +4,14 @@ optimum a cold start reaches, with fewer full solves."""
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
 from rsmb import ops
 from rsmb.ops.registration._rowproblem import _centroid, _RowProblem, _shift_margin, _Solver
-from rsmb.ops.registration._start import (SHARED_ROWS, _block_space, _carried, _choose_start, _median, _refine,
-                                          _refine_start, _shared_start)
+from rsmb.ops.registration._start import (SHARED_ROWS, _block_space, _carried, _choose_start, _Correlation, _median,
+                                          _refine, _refine_start, _shared_start)
 
 
 def _solver(seed=3, size=192):
@@ -226,3 +227,41 @@ def test_median_equals_numpys(size, kind):
               "constant": np.full(size, 0.3)}[kind].astype(np.float32)
     assert _median(values) == float(np.median(values))
     assert _median(values.astype(np.float64)) == float(np.median(values.astype(np.float64)))
+
+
+def _ccoeff_normed(image, template):
+    """TM_CCOEFF_NORMED in float64, directly from its definition."""
+    image, template = image.astype(np.float64), template.astype(np.float64)
+    th, tw = template.shape
+    t = template - template.mean()
+    out = np.zeros((image.shape[0] - th + 1, image.shape[1] - tw + 1))
+    for y, x in np.ndindex(out.shape):
+        w = image[y:y + th, x:x + tw]
+        w = w - w.mean()
+        norm = np.sqrt((w * w).sum() * (t * t).sum())
+        out[y, x] = (w * t).sum() / norm if norm > 1e-9 else 0.0
+    return out
+
+
+def test_correlation_equals_opencvs_normalised_scores():
+    """The FFT correlation against a template prepared once gives the
+    TM_CCOEFF_NORMED scores (float64 by definition) to float32 rounding, and
+    cv2.matchTemplate's to its own float32 rounding (which grows with the
+    images' mean: it correlates uncentred values), on several images of one
+    shape: texture with a mean offset, a copy of the template's own window
+    (score 1 there), and flat windows (no variance: score 0)."""
+    rng = np.random.default_rng(7)
+    shape, (th, tw) = (50, 160), (30, 140)
+    template = cv2.GaussianBlur(rng.standard_normal((th, tw)).astype(np.float32), (0, 0), 1.5) + 3.0
+    correlation = _Correlation(template, shape)
+    images = [cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), 1.5) - 2.0 for _ in range(3)]
+    images[1][9:9 + th, 17:17 + tw] = 0.5 * template + 1.0
+    images[2][:, :] = 0.0
+    images[2][:, 150:] = rng.standard_normal((shape[0], shape[1] - 150)).astype(np.float32)
+    for image in images:
+        got = correlation.scores(image)
+        assert got.shape == (shape[0] - th + 1, shape[1] - tw + 1) and got.dtype == np.float32
+        np.testing.assert_allclose(got, _ccoeff_normed(image, template), atol=1e-6, rtol=0)
+        np.testing.assert_allclose(got, cv2.matchTemplate(image, template, cv2.TM_CCOEFF_NORMED), atol=1e-5, rtol=0)
+    assert correlation.scores(images[1])[9, 17] == pytest.approx(1.0, abs=1e-6)
+    assert (correlation.scores(images[2])[:, :10] == 0.0).all()
