@@ -32,6 +32,14 @@ the disoccluded ones and remnants (smaller than a change, or rims thinner
 than 3 px) join ``parallax``.
 The rest, a new object on the roof or touching the block, stays a change
 candidate (``kept``), judged at the layer's depth only.
+
+Two layers at different depths whose residuals touch (a near roof moving over
+the ground a farther one hid) make one component that no one depth explains:
+each connected piece of what a layer's depth leaves (at least ``min_area``
+pixels) is tested again on its own, with the same rules, except that its
+depth explains none of the pixels at which it would show a layer already found
+at another depth than that layer's own (:func:`sees_a_layer_elsewhere`'s
+rule: a new object beside a roof is not the roof seen nearer).
 """
 
 from dataclasses import dataclass, field
@@ -50,6 +58,8 @@ __all__ = ["LayerParams", "LayerResult", "depth_layers", "sees_a_layer_elsewhere
 
 MIN_EXPLAINED = 0.25
 MIN_COVERED = 0.6
+#: Most layers found in one candidate component (:func:`_layers_of`).
+MAX_LAYERS = 4
 #: Width (px) of the ground ring judged with a component's depth.  The ring's
 #: first pixels show a layer painted beyond its edge; a wider ring takes in
 #: ground whose texture a small shift still explains, which favours the depths
@@ -158,13 +168,35 @@ def depth_layers(registration, reference, distorted, *, camera, threshold, refer
     for index, box in enumerate(ndimage.find_objects(labels), start=1):
         box = tuple(slice(max(b.start - RING, 0), min(b.stop + RING, n)) for b, n in zip(box, labels.shape))
         component = (labels[box] == index) & candidates[box]
-        if component.sum() < params.min_area:
-            continue
-        ring = plane[box] & ~component & _dilate(component, cv2.MORPH_RECT, RING)
-        found = _test_component(frame, box, component, ring, params.depths, threshold, params.min_area)
-        if found is not None:
-            _mark(out, frame, box, component, found, lambda_chi)
+        if component.sum() >= params.min_area:
+            _layers_of(out, frame, box, component, plane[box], threshold, lambda_chi, params)
+    # a pixel a later layer explains is no longer kept by an earlier one
+    out.kept &= ~out.parallax
+    out.on_layer &= ~out.parallax
     return out
+
+
+def _layers_of(out, frame, box, component, plane, threshold, lambda_chi, params):
+    """The layers of one candidate component.  Two layers at different depths
+    whose residuals touch make one component, and no one depth explains both:
+    what a layer's depth leaves of it (its kept pixels) is tested again, each
+    connected piece of at least ``min_area`` pixels on its own, at most
+    :data:`MAX_LAYERS` layers per component.  A new object is explained at no
+    depth and stays a change."""
+    pending, found_layers = [component], 0
+    while pending and found_layers < MAX_LAYERS:
+        piece = pending.pop()
+        ring = plane & ~piece & _dilate(piece, cv2.MORPH_RECT, RING)
+        found = _test_component(frame, box, piece, ring, params.depths, threshold, params.min_area,
+                                earlier=out if found_layers else None)
+        if found is None:
+            continue
+        _mark(out, frame, box, piece, found, lambda_chi)
+        found_layers += 1
+        rest = piece & ~found[2] & ~found[3]  # neither explained nor disoccluded
+        lab, count = ndimage.label(rest, structure=np.ones((3, 3)))
+        sizes = np.bincount(lab.ravel(), minlength=count + 1)
+        pending.extend(lab == k for k in np.nonzero(sizes >= params.min_area)[0] if k > 0)
 
 
 class _Frame:
@@ -204,11 +236,14 @@ class _Carry(NamedTuple):
         return cls(registration, camera, tuple(reference_origin_yx), dy, dx)
 
 
-def _test_component(frame, box, component, ring, depths, threshold, min_area):
+def _test_component(frame, box, component, ring, depths, threshold, min_area, earlier=None):
     """(depth, rendered window, explained, disoccluded, footprint, on_layer)
     of the depth that makes the component parallax, or None.  A depth's
     score: the component's pixels it explains less the ``ring`` pixels (the
-    ground beside it, explained on the plane) it leaves unexplained."""
+    ground beside it, explained on the plane) it leaves unexplained.  With
+    ``earlier`` (a LayerResult), a depth explains none of the pixels that it
+    would show an earlier layer at another depth than that layer's own
+    (:func:`_borrows`)."""
     g = frame.dist[box]
     pixels = int(component.sum())
     tried = {}
@@ -217,6 +252,8 @@ def _test_component(frame, box, component, ring, depths, threshold, min_area):
         if depth not in tried:
             rendered = frame.render(box[0], box[1], 1.0 / depth)  # depths swept, inverse depths rendered
             fits = np.abs(g - rendered) < threshold
+            if earlier is not None and earlier.footprint is not None:
+                fits[component] &= ~_borrows(frame.carry, earlier, box, component, 1.0 / depth)
             explained = component & fits
             tried[depth] = (int(explained.sum()) - int((ring & ~fits).sum()), depth, rendered, explained)
         return tried[depth]
@@ -290,18 +327,26 @@ def sees_a_layer_elsewhere(layers, registration, pixels, inverse_depth, *, camer
         return out
     carry = _Carry.of(registration, camera, reference_origin_yx, distorted_origin_yx)
     whole = (slice(0, pixels.shape[0]), slice(0, pixels.shape[1]))
-    q = inverse_depth[pixels].astype(np.float64)
-    points = np.round(_to_reference(carry, whole, pixels, q)).astype(int)
+    out[pixels] = _borrows(carry, layers, whole, pixels, inverse_depth[pixels].astype(np.float64), tolerance)
+    return out
+
+
+def _borrows(carry, layers, box, pixels, q, tolerance=2.0):
+    """Per pixel of ``pixels`` (bool in ``box``), in their order: carried by its
+    row's centroid pose at inverse depth ``q`` (a number or one per pixel), it
+    lands on a layer's footprint, and ``q`` moves it by more than
+    ``tolerance`` px more or less than that layer's own inverse depth does."""
+    q = np.broadcast_to(np.asarray(q, np.float64), (int(pixels.sum()),))
+    points = np.round(_to_reference(carry, box, pixels, q)).astype(int)
     r, c = points.T
     ok = (r >= 0) & (c >= 0) & (r < layers.footprint.shape[0]) & (c < layers.footprint.shape[1])
     label = np.zeros(len(q), np.int32)
     label[ok] = layers.footprint[r[ok], c[ok]]
     layer_q = np.array([0.0] + [1.0 / comp["depth"] for comp in layers.components])[label]
-    rows = np.nonzero(pixels)[0]
-    p6 = full_poses(registration.trajectory[rows], registration.axes)
+    rows = np.nonzero(pixels)[0] + box[0].start
+    p6 = full_poses(carry.reg.trajectory[rows], carry.reg.axes)
     shift = np.hypot(p6[:, 0], p6[:, 1])  # px a unit of inverse depth moves the pixel
-    out[pixels] = (label > 0) & (np.abs(q - layer_q) * np.maximum(shift, 1.0) > tolerance)
-    return out
+    return (label > 0) & (np.abs(q - layer_q) * np.maximum(shift, 1.0) > tolerance)
 
 
 def _edge(pixels, explained, rendered, g, threshold):
