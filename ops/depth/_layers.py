@@ -35,11 +35,13 @@ candidate (``kept``), judged at the layer's depth only.
 
 Two layers at different depths whose residuals touch (a near roof moving over
 the ground a farther one hid) make one component that no one depth explains:
-each connected piece of what a layer's depth leaves (at least ``min_area``
-pixels) is tested again on its own, with the same rules, except that its
+each connected piece of what a layer's depth leaves beside the layer (at
+least ``min_area`` pixels; what falls on the layer is judged against it) is
+tested again on its own, with the same rules, except that its
 depth explains none of the pixels at which it would show a layer already found
 at another depth than that layer's own (:func:`sees_a_layer_elsewhere`'s
-rule: a new object beside a roof is not the roof seen nearer).
+rule: a new object beside a roof is not the roof seen nearer), and that it
+needs evidence of a depth of its own: some pixel that depth alone explains.
 """
 
 from dataclasses import dataclass, field
@@ -179,10 +181,11 @@ def depth_layers(registration, reference, distorted, *, camera, threshold, refer
 def _layers_of(out, frame, box, component, plane, threshold, lambda_chi, params):
     """The layers of one candidate component.  Two layers at different depths
     whose residuals touch make one component, and no one depth explains both:
-    what a layer's depth leaves of it (its kept pixels) is tested again, each
-    connected piece of at least ``min_area`` pixels on its own, at most
-    :data:`MAX_LAYERS` layers per component.  A new object is explained at no
-    depth and stays a change."""
+    what a layer's depth leaves of it beside the layer (its kept pixels that do
+    not fall on the layer: an object on a roof is judged against the roof) is
+    tested again, each connected piece of at least ``min_area`` pixels on its
+    own, at most :data:`MAX_LAYERS` layers per component.  A new object is
+    explained at no depth of its own and stays a change."""
     pending, found_layers = [component], 0
     while pending and found_layers < MAX_LAYERS:
         piece = pending.pop()
@@ -193,7 +196,8 @@ def _layers_of(out, frame, box, component, plane, threshold, lambda_chi, params)
             continue
         _mark(out, frame, box, piece, found, lambda_chi)
         found_layers += 1
-        rest = piece & ~found[2] & ~found[3]  # neither explained nor disoccluded
+        # neither explained nor disoccluded, nor on the layer (an object on a roof is judged against it)
+        rest = piece & ~found[2] & ~found[3] & ~found[5]
         lab, count = ndimage.label(rest, structure=np.ones((3, 3)))
         sizes = np.bincount(lab.ravel(), minlength=count + 1)
         pending.extend(lab == k for k in np.nonzero(sizes >= params.min_area)[0] if k > 0)
@@ -241,9 +245,10 @@ def _test_component(frame, box, component, ring, depths, threshold, min_area, ea
     of the depth that makes the component parallax, or None.  A depth's
     score: the component's pixels it explains less the ``ring`` pixels (the
     ground beside it, explained on the plane) it leaves unexplained.  With
-    ``earlier`` (a LayerResult), a depth explains none of the pixels that it
-    would show an earlier layer at another depth than that layer's own
-    (:func:`_borrows`)."""
+    ``earlier`` (a LayerResult: the piece was left by a layer), a depth
+    explains none of the pixels at which it would show an earlier layer at
+    another depth than that layer's own (:func:`_borrows`), and the piece is a
+    layer only with a footprint (some pixel only its depth explains)."""
     g = frame.dist[box]
     pixels = int(component.sum())
     tried = {}
@@ -279,6 +284,8 @@ def _test_component(frame, box, component, ring, depths, threshold, min_area, ea
     lab, _ = ndimage.label(seen, structure=np.ones((3, 3)))
     seen = np.isin(lab, np.unique(lab[decisive & seen])) & (lab > 0)
     footprint = _footprint(frame, box, seen | explained, decisive, 1.0 / depth)
+    if earlier is not None and not footprint.any():
+        return None  # a piece left by a layer, with no pixel only this depth explains: no depth of its own
     disoccluded = _disoccluded(frame, box, component & ~explained & ~edge, footprint, 1.0 / depth) | edge
     if count + disoccluded.sum() < MIN_COVERED * pixels:
         return None
