@@ -98,8 +98,9 @@ def _median(values, samples=1024, margin=48):
         inside = values[(values >= lo) & (values <= hi)]
         if below <= k[0] and k[1] < below + inside.size:
             part = np.partition(inside, (k[0] - below, k[1] - below))
-            # np.median's own arithmetic: the mean of the middle pair in the values' dtype
-            return float(np.mean(part[[k[0] - below, k[1] - below]]))
+            # np.median's own arithmetic: the mean of the middle value or pair, in the
+            # values' dtype (one value when n is odd: a value's double may overflow)
+            return float(np.mean(part[k[0] - below:k[1] - below + 1]))
     return float(np.median(values))
 
 
