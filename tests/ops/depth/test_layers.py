@@ -90,6 +90,26 @@ def test_objects_on_and_against_a_block_stay_changes(seed):
     assert ops.confusion(mask, pair.change_mask).precision >= 0.95
 
 
+def test_an_object_left_beside_a_layer_does_not_borrow_it_at_another_depth():
+    """What a block's depth leaves of its component is tested again on its own
+    (:func:`ops.depth._layers._layers_of`), but no depth explains a pixel by
+    showing the block at a depth other than its own: here the object against
+    the block is left beside it, and a nearer depth paints the block's roof
+    over it.  Without that rule the object was a layer of its own, wholly
+    parallax (this seed); with it, the object stays a change."""
+    from rsmb.ops.synthetic._raised import AGAINST_BLOCK, raised_pair
+
+    pair, objects = raised_pair((256, 256), seed=6, blocks=2, away=1, block_size=(36, 48), object_size=(14, 20))
+    changes, params = ops.ChangeParams(), ops.RegistrationParams()
+    reg, threshold, layers = _tile_method(pair, params)
+    score = np.where(layers.parallax | ~reg.valid, 0.0, ops.change_score(layers.chi, layers.registered, params=changes))
+    mask = ops.change_mask(score, threshold, params=changes)
+    (against,) = [m for kind, m in objects if kind == AGAINST_BLOCK]
+    assert against.sum() > 50
+    assert mask[against].mean() >= 0.85 and layers.parallax[against].mean() <= 0.2
+    assert mask[pair.parallax_mask & pair.valid].mean() <= 0.02  # the blocks are still no change
+
+
 def test_one_renderer_at_inverse_depth_is_the_row_warp_at_depth(raised):
     """The depth steps' one renderer (inverse depth ``q`` multiplies the
     translations) gives what the row warp of ``ops._warp`` gives with the
