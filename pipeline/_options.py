@@ -168,7 +168,7 @@ def registration_options(func):
         click.option("--lambda-w", type=Number(min=0), default=_D["lambda_w"], show_default=True,
                      help="Weight of ||w||_1 in eq. 13 (intensities in [0, 1])."),
         click.option("--lambda-chi", type=Number(min=0, min_open=True), default=_D["lambda_chi"], show_default=True,
-                     help="Weight of ||chi||_1 in eq. 13; residuals above half of it count as change."),
+                     help="Weight of ||chi||_1 in eq. 13: the change term chi takes up residuals beyond half of it; the mask is decided by --threshold."),
         click.option("--threshold", default=_D["threshold"], show_default=True, callback=_check_threshold,
                      help="Change threshold: 'noise' (k robust sigmas of the residual), 'kapur' (the paper's "
                           "entropy threshold) or a number (score units, intensities in [0, 1])."),

@@ -86,8 +86,8 @@ def _median(values, samples=1024, margin=48):
     """``float(np.median(values))`` of a non-empty 1-D array without NaN, by
     selecting only the values between two order statistics of an evenly
     strided sample that bracket the middle (the whole array when they do
-    not).  The warped bands of the correlation search all hold no-data, and a
-    full selection over a band costs several times its gradients' filters."""
+    not).  The warped bands of the correlation search all hold no-data, filled
+    with this median before their gradients are taken."""
     n = values.size
     k = (n - 1) // 2, n // 2  # the middle order statistics (equal when n is odd)
     if n > 8 * samples:
@@ -169,7 +169,9 @@ class _Correlation:
     and norm computed once (OpenCV transforms the template again on every
     call, one of its three transforms): the cross-correlation by a float32
     FFT, the windows' sums and sums of squares from float64 integral images,
-    and OpenCV's rule where the normalised score leaves [-1, 1] by rounding."""
+    and OpenCV's rule where the normalised score leaves [-1, 1] by rounding.
+    A flat template (zero norm) scores 0 everywhere, where OpenCV gives 1:
+    the search rejects flat templates before it correlates."""
 
     def __init__(self, template, shape):
         self.th, self.tw = template.shape

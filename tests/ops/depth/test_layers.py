@@ -214,7 +214,7 @@ def test_two_touching_roofs_at_two_depths_are_both_layers(monkeypatch):
     depth explains: what the first layer's depth leaves of it is tested again
     on its own and found at the other roof's depth.  With one layer per
     component (as before) a band of the farther roof, its edge and the ground
-    it hid, stayed a change candidate (``kept``, 172 px here); where that
+    it hid, stayed a change candidate (``kept``); where that
     layer's depth was a compromise between both roofs, its footprint kept the
     dense depth map from giving the band its own depth, and the band was
     reported as change (the bench's 1024 px parallax case)."""
