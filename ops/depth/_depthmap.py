@@ -38,10 +38,18 @@ import numba
 import numpy as np
 
 from .._camera import full_poses
+from .._errors import ParameterError
 from .._oracle import optimal_chi
 from .._warp import _bilinear, _inverse_map
 
 __all__ = ["DepthMapParams", "DepthMapResult", "depth_map", "model_values"]
+
+#: The sweep's per-pixel depth indices (:class:`_Best` ``index``, the fine
+#: pass's window ranges): a tile's worth of them is written every tile, so
+#: the narrowest integer that holds :attr:`DepthMapParams.max_depths` and
+#: the "none" sentinel ``_BIG``.
+_INDEX = np.int16
+_BIG = 2 ** 14
 
 
 @dataclass(frozen=True)
@@ -77,6 +85,10 @@ class DepthMapParams:
     window: int = 7
     gain: float = 0.85
     min_share: float = 0.0005
+
+    def __post_init__(self):
+        if not 2 <= self.max_depths < _BIG:
+            raise ParameterError(f"max_depths: expected 2 to {_BIG - 1} depths, got {self.max_depths!r}")
 
 
 @dataclass
@@ -178,7 +190,7 @@ def _takes(scene, g, active, cost_plane, tau, qs, params):
     depth = np.ones(g.shape, np.float32)
     fit = _Fit(np.ascontiguousarray(g), render_mask, active.astype(np.uint8), tau, int(params.window) // 2,
                _runs(render_mask))
-    _sweep(scene, fit, qs, int(params.stride), _Best(best, chosen, depth, np.full(g.shape, -1)))
+    _sweep(scene, fit, qs, int(params.stride), _Best(best, chosen, depth, np.full(g.shape, -1, _INDEX)))
     return active & np.isfinite(chosen) & (best <= params.gain * cost_plane), chosen, depth
 
 
@@ -516,9 +528,9 @@ def _window_range(index, active, half, runs):
     its window), the smallest and largest ``index`` of the active pixels in its
     window (lo > hi where there are none, and off the runs)."""
     height, width = index.shape
-    big = np.iinfo(np.int64).max // 2
-    row_lo = np.full((height, width), big, np.int64)
-    row_hi = np.full((height, width), -big, np.int64)
+    big = _BIG
+    row_lo = np.full((height, width), big, _INDEX)
+    row_hi = np.full((height, width), -big, _INDEX)
     for r in range(runs.rows.shape[0]):
         i = runs.rows[r]
         for j in range(runs.starts[r], runs.ends[r]):
@@ -526,8 +538,8 @@ def _window_range(index, active, half, runs):
                 for d in range(max(j - half, 0), min(j + half, width - 1) + 1):
                     row_lo[i, d] = min(row_lo[i, d], index[i, j])
                     row_hi[i, d] = max(row_hi[i, d], index[i, j])
-    lo = np.full((height, width), big, np.int64)
-    hi = np.full((height, width), -big, np.int64)
+    lo = np.full((height, width), big, _INDEX)
+    hi = np.full((height, width), -big, _INDEX)
     for r in range(runs.rows.shape[0]):
         i = runs.rows[r]
         for j in range(runs.starts[r], runs.ends[r]):

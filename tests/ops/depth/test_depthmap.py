@@ -11,7 +11,7 @@ import pytest
 from scipy import ndimage
 
 from rsmb import ops
-from rsmb.ops.depth._depthmap import _Best, _Fit, _geometry, _RowPoses, _runs, _sweep, _window_cost
+from rsmb.ops.depth._depthmap import _BIG, _INDEX, _Best, _Fit, _geometry, _RowPoses, _runs, _sweep, _window_cost
 
 from .test_layers import EXPOSURE, SHAPE, _path  # the same scene and camera path
 
@@ -135,6 +135,15 @@ def test_no_residual_no_work():
     np.testing.assert_array_equal(dense.registered, reg.registered)
 
 
+def test_depth_count_fits_the_sweeps_indices():
+    """The sweep keeps depth indices in :data:`_INDEX` integers below its
+    sentinel: more depths than that are refused, not wrapped around."""
+    assert ops.DepthMapParams(max_depths=_BIG - 1).max_depths == _BIG - 1
+    for bad in (_BIG, 1):
+        with pytest.raises(ops.ParameterError, match="max_depths"):
+            ops.DepthMapParams(max_depths=bad)
+
+
 def test_the_sweep_is_each_depth_rendered_and_box_filtered(raised):
     """The fused sweep (one kernel for every depth, costs only on active pixels)
     against the sweep written out: each depth rendered on the dilated mask,
@@ -163,7 +172,7 @@ def test_the_sweep_is_each_depth_rendered_and_box_filtered(raised):
     scene = rows.scene(ref, geometry)
     render_mask = render_mask.astype(np.uint8)
     fit = _Fit(g, render_mask, active.astype(np.uint8), tau, window // 2, _runs(render_mask))
-    _sweep(scene, fit, qs, 1, _Best(best, chosen, depth, np.full(g.shape, -1)))
+    _sweep(scene, fit, qs, 1, _Best(best, chosen, depth, np.full(g.shape, -1, _INDEX)))
     assert np.isfinite(want_best).sum() > 0.9 * active.sum() and not np.isfinite(best[~active]).any()
     np.testing.assert_allclose(best, want_best, rtol=1e-5, atol=1e-6)
     # depths whose costs tie to rounding may swap; everywhere else the same depth and value
@@ -173,7 +182,7 @@ def test_the_sweep_is_each_depth_rendered_and_box_filtered(raised):
     # coarse to fine: never below the full sweep's cost, and the same depth almost everywhere
     fine = np.full(g.shape, np.inf, np.float32)
     fine_chosen, fine_depth = np.full(g.shape, np.nan, np.float32), np.ones(g.shape, np.float32)
-    _sweep(scene, fit, qs, 4, _Best(fine, fine_chosen, fine_depth, np.full(g.shape, -1)))
+    _sweep(scene, fit, qs, 4, _Best(fine, fine_chosen, fine_depth, np.full(g.shape, -1, _INDEX)))
     swept = np.isfinite(want_best)
     assert np.array_equal(np.isfinite(fine), swept)
     assert (fine[swept] >= want_best[swept] - 1e-6).all()
