@@ -41,7 +41,7 @@ import numba
 import numpy as np
 
 from .._oracle import optimal_chi
-from ..depth._depthmap import _RowPoses, _geometry, _point
+from ..depth._depthmap import _RowPoses, _geometry, _point_on_row, _row_map
 
 __all__ = ["ModelBounds", "model_bounds", "bounded_score"]
 
@@ -116,17 +116,30 @@ def _bounds(scene, state, mask, model, high_share, low_share):
     ref, poses6, weights, offsets, gain = scene.ref, scene.poses6, scene.weights, scene.offsets, scene.gain
     hr, wr = ref.shape
     per_column = gain.shape[0] == width
+    most = 0
+    for i in range(height):
+        most = max(most, offsets[i + 1] - offsets[i])
+    maps = np.empty((most, 11))  # a row's poses' maps reduced to the row (_row_map), once per row
     for i in range(height):
         s0, s1 = offsets[i], offsets[i + 1]
         if s0 == s1:
             continue
+        reduced = False
         for j in range(width):
             if mask[i, j] == 0:
                 continue
+            if not reduced:
+                for k in range(s0, s1):
+                    row = _row_map(scene.maps[k], poses6[k, 0], poses6[k, 1], 1.0 + poses6[k, 2], i + scene.dy,
+                                   scene.cx, scene.cy)
+                    for t in range(11):
+                        maps[k - s0, t] = row[t]
+                reduced = True
             acc, total, up, down, ok = 0.0, 0.0, 0.0, 0.0, True
             for k in range(s0, s1):
-                u, v = _point(scene.maps[k], poses6[k, 0], poses6[k, 1], 1.0 + poses6[k, 2], j + scene.dx,
-                              i + scene.dy, scene.cx, scene.cy)
+                m = maps[k - s0]
+                u, v = _point_on_row((m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8], m[9], m[10]),
+                                     j + scene.dx)
                 if not (u >= 0.0 and v >= 0.0 and u <= wr - 1 and v <= hr - 1):
                     ok = False
                     break
