@@ -1,5 +1,5 @@
 """Warps of the reference by camera poses, in compiled code: the sampling map of
-a pose, one row warped by many poses (the columns of ``F_i``), rows gathered
+a pose and the point it carries a capture pixel to, one row warped by many poses (the columns of ``F_i``), rows gathered
 from pre-warped images by whole-pixel shifts, whole windows warped by one pose,
 and the exposure average of the forward model.
 
@@ -217,3 +217,30 @@ def _warp_into(src, poses6, focal, cx, cy, oy, ox, out):
                 vs[j] = (h1 + j * d1) * inv + cy
         for j in range(width):
             row[j] = _bilinear(src, us[j], vs[j])
+
+
+@numba.njit(**_JIT)
+def _point(m, tx, ty, sc, x, y, cx, cy):
+    """The point (u, v) (column, row) of the reference window that a pose
+    (rotation map ``m``, translations ``tx``, ``ty`` px, scale ``sc``)
+    carries capture pixel (x, y) to."""
+    return _point_on_row(_row_map(m, tx, ty, sc, y, cx, cy), x)
+
+
+@numba.njit(**_JIT)
+def _row_map(m, tx, ty, sc, y, cx, cy):
+    """:func:`_point`'s map reduced to capture row ``y``: what
+    :func:`_point_on_row` needs for any column of it."""
+    uy = (y - cy - ty) / sc
+    ch = m[7] * uy + m[8]
+    return (m[0], m[3], m[6], m[1] * uy + m[2], m[4] * uy + m[5], ch, cx + tx, 1.0 / sc, cx, cy, 1.0 / ch)
+
+
+@numba.njit(**_JIT)
+def _point_on_row(row, x):
+    """:func:`_point` at column ``x`` of the row :func:`_row_map` reduced to
+    (the division along the row done once where the pose has no tilt)."""
+    m0, m3, m6, cu, cv, ch, x0, inverse_scale, cx, cy, flat_h = row
+    ux = (x - x0) * inverse_scale
+    h = flat_h if m6 == 0.0 else 1.0 / (m6 * ux + ch)
+    return (m0 * ux + cu) * h + cx, (m3 * ux + cv) * h + cy

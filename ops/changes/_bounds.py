@@ -41,7 +41,8 @@ import numba
 import numpy as np
 
 from .._oracle import optimal_chi
-from ..depth._depthmap import _RowPoses, _geometry, _point_on_row, _row_map
+from .._warp import _point_on_row, _row_map
+from ..depth._depthmap import _RowPoses, _geometry
 
 __all__ = ["ModelBounds", "model_bounds", "bounded_score"]
 

@@ -40,7 +40,7 @@ import numpy as np
 from .._camera import full_poses
 from .._errors import ParameterError
 from .._oracle import optimal_chi
-from .._warp import _bilinear, _inverse_map
+from .._warp import _bilinear, _inverse_map, _point_on_row, _row_map
 
 __all__ = ["DepthMapParams", "DepthMapResult", "depth_map", "model_values"]
 
@@ -547,30 +547,3 @@ def _window_range(index, active, half, runs):
                 lo[i, j] = min(lo[i, j], row_lo[d, j])
                 hi[i, j] = max(hi[i, j], row_hi[d, j])
     return lo, hi
-
-
-@numba.njit(nogil=True, cache=True)
-def _point(m, tx, ty, sc, x, y, cx, cy):
-    """The point (u, v) (column, row) of the reference window that a pose
-    (rotation map ``m``, translations ``tx``, ``ty`` px, scale ``sc``)
-    carries capture pixel (x, y) to."""
-    return _point_on_row(_row_map(m, tx, ty, sc, y, cx, cy), x)
-
-
-@numba.njit(nogil=True, cache=True)
-def _row_map(m, tx, ty, sc, y, cx, cy):
-    """:func:`_point`'s map reduced to capture row ``y``: what
-    :func:`_point_on_row` needs for any column of it."""
-    uy = (y - cy - ty) / sc
-    ch = m[7] * uy + m[8]
-    return (m[0], m[3], m[6], m[1] * uy + m[2], m[4] * uy + m[5], ch, cx + tx, 1.0 / sc, cx, cy, 1.0 / ch)
-
-
-@numba.njit(nogil=True, cache=True)
-def _point_on_row(row, x):
-    """:func:`_point` at column ``x`` of the row :func:`_row_map` reduced to
-    (the division along the row done once where the pose has no tilt)."""
-    m0, m3, m6, cu, cv, ch, x0, inverse_scale, cx, cy, flat_h = row
-    ux = (x - x0) * inverse_scale
-    h = flat_h if m6 == 0.0 else 1.0 / (m6 * ux + ch)
-    return (m0 * ux + cu) * h + cx, (m3 * ux + cv) * h + cy

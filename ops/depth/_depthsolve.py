@@ -34,12 +34,12 @@ import numba
 import numpy as np
 
 from .._camera import full_poses
-from ._depthmap import _geometry, _point, _point_on_row, _row_map, _RowPoses, depth_map
+from ._depthmap import _geometry, _RowPoses, depth_map
 from ._layers import depth_layers, sees_a_layer_elsewhere
 from .._oracle import _huber_loss, optimal_chi
 from ..registration._rowproblem import _centroid, _Solver
 from ..registration._rowsolve import MAX_ADD, MAX_OUTER, TOL, _solve_huber_nn
-from .._warp import _bilinear, _inverse_map
+from .._warp import _bilinear, _inverse_map, _point, _point_on_row, _row_map
 
 __all__ = ["AlternateParams", "depth_step"]
 
