@@ -13,6 +13,9 @@ solved on their own around the interpolated path.
 
 import numpy as np
 
+from .._camera import full_poses
+from .._warp import _inverse_map, _point
+
 from ._propagate_kernels import (_Capture, _Context, _follow, _Gather, _jumps, _Lattice, _Neighbour, _Prewarp,
                                  _propagate_rows, _Row, _row_step, _RowOutputs, _Source, _trust_state)
 from ._rowproblem import _centroid
@@ -32,6 +35,29 @@ def _px_per_unit(problem):
     scale = {"tx": 1.0, "ty": 1.0, "s": radius, "rz": np.radians(radius), "rx": np.radians(problem.focal),
              "ry": np.radians(problem.focal)}
     return np.array([scale[a] for a in problem.axes])
+
+
+def _corner_shifts(problem):
+    """Per corner of ``problem``'s window (4) the displacement (px; column,
+    row) of that pixel per unit of each axis of ``problem`` (D): the sampling
+    map linearised at the identity pose, (4, 2, D).  A pose difference
+    ``delta`` moves the corner by ``shifts[c] @ delta``; the axes add up, so a
+    difference along a direction a single row cannot tell apart (rz against
+    tx and ty far from the principal point) moves the window's pixels by
+    what it moves them, not by each axis's share alone."""
+    h, w = problem.dist.shape
+    corners = [(x, y) for y in (problem.dy, problem.dy + h - 1) for x in (problem.dx, problem.dx + w - 1)]
+    eps = 1e-3
+    out = np.zeros((4, 2, len(problem.axes)))
+    for d in range(len(problem.axes)):
+        ends = []
+        for sign in (-1.0, 1.0):
+            unit = np.zeros(len(problem.axes))
+            unit[d] = sign * eps
+            m, tx, ty, sc = _inverse_map(full_poses(unit, problem.axes), problem.focal, problem.cx, problem.cy)
+            ends.append([_point(m, tx, ty, sc, float(x), float(y), problem.cx, problem.cy) for x, y in corners])
+        out[:, :, d] = (np.asarray(ends[1]) - np.asarray(ends[0])) / (2 * eps)
+    return out
 
 
 def _shift_weights(w, counts, delta):
@@ -60,6 +86,7 @@ class _Propagation:
         self.step = np.asarray(space.step)
         self.offsets_step = space.offsets() * self.step
         self.px_per_unit = _px_per_unit(solver.problem)
+        self.corner_shifts = _corner_shifts(solver.problem)
         self._arrays = None
 
     def solve_row(self, i, c, neighbour):
@@ -125,7 +152,7 @@ class _Propagation:
                     continue
                 c = np.asarray(c, np.float64)
                 predicted = np.empty(dims)
-                if _jumps(c, i, self.px_per_unit, trust, predicted):
+                if _jumps(c, i, self.px_per_unit, self.corner_shifts, trust, predicted):
                     rows = np.arange(i, height if direction > 0 else -1, direction)
                     again = self.solve_row(i, self._reanchor(rows, informative, c, predicted, trust), prev)
                     c = c if again is None else np.asarray(again, np.float64)
@@ -142,7 +169,8 @@ class _Propagation:
         problem, out = self.solver.problem, self.out
         arr = self._compiled_arrays(len(informative))
         lattice = _Lattice(arr["offsets"], arr["counts"], self.step, -1 if problem.ty is None else problem.ty,
-                           -1 if problem.tx is None else problem.tx, arr["other"], self.px_per_unit)
+                           -1 if problem.tx is None else problem.tx, arr["other"], self.px_per_unit,
+                           self.corner_shifts)
         capture = _Capture(problem.dist, problem.dist_valid, informative)
         outputs = _RowOutputs(out.registered, out.chi, out.valid, out.trajectory, out.row_state, out.row_gain,
                               arr["weights"], arr["centers"])

@@ -36,17 +36,20 @@ _SUMS = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})
 #: keeps running it here.
 ROWSOLVE_REVISION = 12
 
-#: A row whose centroid moves the window's farthest pixel more than this (px)
-#: away from where the path before it leads (its last pose plus its velocity)
-#: re-anchors the path: a block of rows from it on is solved jointly, as the
-#: start block is, on a grid wide enough for both the row's pose and the
-#: prediction, and the row is solved again around the block's centroid.  A
-#: camera path moves a pixel by a small fraction of this from one row to the
-#: next; a row that jumps is a real turn of the path or a fit that a change or
-#: an ambiguity (rz against ty on a single row) has pulled into a wrong basin,
-#: from which the rows after it could not climb out.  One row cannot tell the
-#: two apart (its own eq. 13 cost can be lower in the wrong basin); a block
-#: can.
+#: A row whose centroid, against where the path before it leads (its last pose
+#: plus its velocity), moves the window's pixels by more than this (px)
+#: re-anchors the path: some axis alone moves the window's farthest pixel that
+#: much, and all axes together move some pixel of the window (a corner:
+#: linearised, the poses move the window's pixels affinely) that much; a trade
+#: of rz against tx and ty that leaves the window's pixels in place is no jump.
+#: A block of rows from it on is then solved jointly, as the start block is, on
+#: a grid wide enough for both the row's pose and the prediction, and the row
+#: is solved again around the block's centroid.  A camera path moves a pixel by
+#: a small fraction of this from one row to the next; a row that jumps is a
+#: real turn of the path or a fit that a change or an ambiguity (rz against ty
+#: on a single row) has pulled into a wrong basin, from which the rows after it
+#: could not climb out.  One row cannot tell the two apart (its own eq. 13 cost
+#: can be lower in the wrong basin); a block can.
 DRIFT_PX = 0.75
 #: ... plus this much (px) per row since the last row on the path: the
 #: velocity the prediction extrapolates is itself uncertain.
@@ -100,8 +103,10 @@ class _Prewarp(NamedTuple):
 class _Lattice(NamedTuple):
     """The row neighbourhood: lattice offsets (K, D) int64, counts per axis,
     steps per axis, the dimensions of ty, tx and the one other axis (-1 when
-    absent), and per axis the pixels a unit moves the window's farthest pixel
-    (:func:`ops.registration._propagate._px_per_unit`)."""
+    absent), per axis the pixels a unit moves the window's farthest pixel
+    (:func:`ops.registration._propagate._px_per_unit`), and how a unit of each
+    axis moves each corner of the window
+    (:func:`ops.registration._propagate._corner_shifts`)."""
 
     offsets: np.ndarray
     counts: np.ndarray
@@ -110,6 +115,7 @@ class _Lattice(NamedTuple):
     tx_dim: int
     other_dim: int
     px_per_unit: np.ndarray
+    corner_shifts: np.ndarray
 
 
 class _Capture(NamedTuple):
@@ -535,7 +541,7 @@ def _propagate_rows(ctx, rows, neighbour, a, trust, anchor):
                 prev.center[:] = center
                 prev.weights[:] = w
             continue
-        if trust[2 * dims + 1] == 0.0 and _jumps(c_own, i, lattice.px_per_unit, trust, predicted):
+        if trust[2 * dims + 1] == 0.0 and _jumps(c_own, i, lattice.px_per_unit, lattice.corner_shifts, trust, predicted):
             anchor[0] = c_own
             anchor[1] = predicted
             return pos, 0, 0, 3  # off the path: the caller re-anchors on a block of rows
@@ -553,18 +559,32 @@ def _propagate_rows(ctx, rows, neighbour, a, trust, anchor):
 
 
 @numba.njit(**_SUMS)
-def _jumps(centroid, row, px_per_unit, trust, predicted):
-    """Whether ``centroid`` of ``row`` lands more than :data:`DRIFT_PX` (plus
-    :data:`DRIFT_PX_PER_ROW` per row since) from the path's prediction,
-    written to ``predicted``.  ``trust`` (2 D + 2,) = (last pose (D), its
-    velocity per row (D), its row, a re-anchor flag)."""
+def _jumps(centroid, row, px_per_unit, corner_shifts, trust, predicted):
+    """Whether ``centroid`` of ``row`` is off the path's prediction, written
+    to ``predicted``: by more than :data:`DRIFT_PX` (plus
+    :data:`DRIFT_PX_PER_ROW` per row since) both on some axis alone (its
+    difference times ``px_per_unit``, what a unit moves the window's farthest
+    pixel) and all axes together (the largest move of a window corner,
+    ``corner_shifts``: :func:`ops.registration._propagate._corner_shifts`).
+    ``trust`` (2 D + 2,) = (last pose (D), its velocity per row (D), its row,
+    a re-anchor flag)."""
     dims = centroid.shape[0]
     gap = row - trust[2 * dims]
-    jump = 0.0
+    limit = DRIFT_PX + DRIFT_PX_PER_ROW * (abs(gap) - 1)
+    alone = 0.0
     for d in range(dims):
         predicted[d] = trust[d] + trust[dims + d] * gap
-        jump = max(jump, abs(centroid[d] - predicted[d]) * px_per_unit[d])
-    return jump > DRIFT_PX + DRIFT_PX_PER_ROW * (abs(gap) - 1)
+        alone = max(alone, abs(centroid[d] - predicted[d]) * px_per_unit[d])
+    if not alone > limit:
+        return False
+    together = 0.0
+    for c in range(corner_shifts.shape[0]):
+        du, dv = 0.0, 0.0
+        for d in range(dims):
+            du += corner_shifts[c, 0, d] * (centroid[d] - predicted[d])
+            dv += corner_shifts[c, 1, d] * (centroid[d] - predicted[d])
+        together = max(together, math.hypot(du, dv))
+    return together > limit
 
 
 @numba.njit(**_SUMS)
