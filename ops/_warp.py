@@ -1,7 +1,8 @@
 """Warps of the reference by camera poses, in compiled code: the sampling map of
-a pose and the point it carries a capture pixel to, one row warped by many poses (the columns of ``F_i``), rows gathered
-from pre-warped images by whole-pixel shifts, whole windows warped by one pose,
-and the exposure average of the forward model.
+a pose and the point it carries a capture pixel to, one row warped by many
+poses (the columns of ``F_i``), rows gathered from pre-warped images by
+whole-pixel shifts, whole windows warped by one pose, and the exposure average
+of the forward model.
 
 Shared by the forward model (:mod:`ops._forward`) and the row solvers, so that
 both use one camera model; bilinear interpolation, NaN marks nodata.

@@ -40,16 +40,20 @@ ROWSOLVE_REVISION = 13
 #: plus its velocity), moves the window's pixels by more than this (px)
 #: re-anchors the path: some axis alone moves the window's farthest pixel that
 #: much, and all axes together move some pixel of the window (a corner:
-#: linearised, the poses move the window's pixels affinely) that much; a trade
-#: of rz against tx and ty that leaves the window's pixels in place is no jump.
-#: A block of rows from it on is then solved jointly, as the start block is, on
-#: a grid wide enough for both the row's pose and the prediction, and the row
-#: is solved again around the block's centroid.  A camera path moves a pixel by
-#: a small fraction of this from one row to the next; a row that jumps is a
-#: real turn of the path or a fit that a change or an ambiguity (rz against ty
-#: on a single row) has pulled into a wrong basin, from which the rows after it
-#: could not climb out.  One row cannot tell the two apart (its own eq. 13 cost
-#: can be lower in the wrong basin); a block can.
+#: linearised, the poses move the window's pixels affinely) that much.  A trade
+#: of rz against tx and ty that leaves the window's pixels in place is no jump;
+#: the test of each axis alone stays a condition: a row whose axes add up to a
+#: move no single one makes (a path the rows cannot follow, such as an
+#: unestimated yaw) is not re-anchored, as block solves pulled such rows away
+#: from their own fit.  A block of rows from it on is then solved jointly, as
+#: the start block is, on a grid wide enough for both the row's pose and the
+#: prediction, and the row is solved again around the block's centroid.  A
+#: camera path moves a pixel by a small fraction of this from one row to the
+#: next; a row that jumps is a real turn of the path or a fit that a change or
+#: an ambiguity (rz against ty on a single row) has pulled into a wrong basin,
+#: from which the rows after it could not climb out.  One row cannot tell the
+#: two apart (its own eq. 13 cost can be lower in the wrong basin); a block
+#: can.
 DRIFT_PX = 0.75
 #: ... plus this much (px) per row since the last row on the path: the
 #: velocity the prediction extrapolates is itself uncertain.
@@ -541,7 +545,8 @@ def _propagate_rows(ctx, rows, neighbour, a, trust, anchor):
                 prev.center[:] = center
                 prev.weights[:] = w
             continue
-        if trust[2 * dims + 1] == 0.0 and _jumps(c_own, i, lattice.px_per_unit, lattice.corner_shifts, trust, predicted):
+        if trust[2 * dims + 1] == 0.0 and _jumps(c_own, i, lattice.px_per_unit, lattice.corner_shifts, trust,
+                                                 predicted):
             anchor[0] = c_own
             anchor[1] = predicted
             return pos, 0, 0, 3  # off the path: the caller re-anchors on a block of rows

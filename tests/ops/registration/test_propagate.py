@@ -55,8 +55,8 @@ def test_a_row_jumps_by_how_far_its_pose_moves_the_windows_pixels():
     rotation far from the principal point with the tx and ty that keep the
     window in place (a direction one row can hardly tell apart) moves its
     pixels by a fraction of what the rotation alone would, and is no jump
-    (the rotation alone re-anchored one row in fourteen of the demo's 2048 px
-    capture, 571 block solves, half its CPU time)."""
+    (the rotation alone, measured at the farthest pixel, re-anchored many rows
+    of a wide capture whose pixels the row's pose had hardly moved)."""
     from types import SimpleNamespace
 
     from rsmb.ops.registration._propagate_kernels import DRIFT_PX, _jumps, _trust_state
