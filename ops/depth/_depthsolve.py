@@ -35,7 +35,7 @@ import numpy as np
 
 from .._camera import full_poses
 from ._depthmap import _geometry, _RowPoses, depth_map
-from ._layers import depth_layers, sees_a_layer_elsewhere
+from ._layers import LayerParams, depth_layers, rims_along, sees_a_layer_elsewhere
 from .._oracle import _huber_loss, optimal_chi
 from ..registration._rowproblem import _centroid, _Solver
 from ..registration._rowsolve import MAX_ADD, MAX_OUTER, TOL, _solve_huber_nn
@@ -149,6 +149,13 @@ def _one_step(registration, reference, g, windows, allowed=None):
         dense.explained &= ~borrowed
     layers.registered, layers.chi = dense.registered, dense.chi
     layers.parallax = layers.parallax | dense.explained
+    # a candidate's rims along the structures the depth map explains are their
+    # remnant, as a layer's are: no evidence (chi 0), in parallax
+    left = registration.valid & (np.abs(dense.chi) > windows["threshold"]) & ~layers.parallax
+    rims = rims_along(left, dense.explained, LayerParams().min_area)
+    if rims.any():
+        dense.chi[rims] = 0.0
+        layers.parallax = layers.parallax | rims
     return layers, dense
 
 

@@ -78,12 +78,16 @@ class LayerParams:
     depths : tuple of float
         Relative depths swept, evenly spaced (distance over the ground's;
         below 1 is nearer): every fourth first, then those within four steps
-        of the best of them.
+        of the best of them.  None nearer than 0.3, about the depth map's
+        largest inverse depth (:attr:`DepthMapParams.max_inverse_depth`): a
+        nearer depth moves a pixel by more than three times the ground's
+        motion, far enough for a uniform new object to find a patch of its own
+        brightness by chance.
     min_area : int
         Smallest component tested, pixels.
     """
 
-    depths: tuple = tuple(round(0.1 + 0.05 * k, 2) for k in range(29) if abs(0.1 + 0.05 * k - 1.0) > 1e-6)
+    depths: tuple = tuple(round(0.3 + 0.05 * k, 2) for k in range(25) if abs(0.3 + 0.05 * k - 1.0) > 1e-6)
     min_area: int = 20
 
 
@@ -414,6 +418,34 @@ def _filled(frame, points):
     mask[r - box[0].start, c - box[1].start] = 1
     mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
     out[box] = ndimage.binary_fill_holes(mask)
+    return out
+
+
+def _opened(mask):
+    """``mask`` (bool) opened by a 3 x 3 square: without its pieces and rims
+    thinner than 3 px, whether or not they touch a thicker part."""
+    return ndimage.binary_opening(mask, np.ones((3, 3), bool))
+
+
+def rims_along(candidates, explained, min_area):
+    """The pixels of ``candidates`` (bool) in rims thinner than 3 px
+    (:func:`_opened`) that touch (8-neighbours) an ``explained`` region of at
+    least ``min_area`` pixels: a structure's edge, blurred and sampled
+    differently by the capture's optics, left beside a thicker candidate (a
+    new object against it) in a component no one depth explains.  Smaller
+    explained regions are chance (a few pixels inside a uniform new object)
+    and make no rim."""
+    out = np.zeros_like(candidates)
+    touch = candidates & _dilate(explained, cv2.MORPH_RECT, 1)
+    if not touch.any():
+        return out
+    # within the touching pixels' box and a margin that holds every pixel the
+    # opening (2 px) and the size of a region reaching them (min_area px) look at
+    rows, cols = np.nonzero(touch.any(axis=1))[0], np.nonzero(touch.any(axis=0))[0]
+    m = int(min_area) + 2
+    box = (slice(max(rows[0] - m, 0), rows[-1] + m + 1), slice(max(cols[0] - m, 0), cols[-1] + m + 1))
+    structures = large_components(explained[box], min_area)
+    out[box] = touch[box] & ~_opened(candidates[box]) & _dilate(structures, cv2.MORPH_RECT, 1)
     return out
 
 

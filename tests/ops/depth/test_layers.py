@@ -239,3 +239,61 @@ def test_two_touching_roofs_at_two_depths_are_both_layers(monkeypatch):
     layers, found = layers_of_the_pair()
     assert found == [False, True]
     assert ops.large_components(layers.kept & parallax, min_area).sum() >= 100
+
+
+def _far_patch_pair():
+    """Smooth dark ground moving 19 px, a bright uniform new object in the
+    capture, and a bright patch of its value in the reference where a depth
+    of 0.1 (inverse depth 10: ten times the ground's motion) carries it."""
+    from scipy import ndimage
+
+    ground = ndimage.gaussian_filter(np.random.default_rng(3).normal(0.0, 1.0, SHAPE), 3.0)
+    scene = (0.25 + 0.04 * ground / ground.std()).astype(np.float32)
+    scene[112:140, 86:114] = 0.9  # 190 px left of the object's ground point and 24 px up
+    rendered = ops.render(scene, _path(tx=(19.0, 19.0), ty=(2.0, 3.0)), shape=SHAPE, exposure=EXPOSURE,
+                          interpolation="cubic")
+    capture = rendered.image + np.random.default_rng(4).normal(0.0, 0.002, SHAPE).astype(np.float32)
+    new = np.zeros(SHAPE, bool)
+    new[142:158, 282:298] = True
+    capture[new] = 0.9
+    capture[~rendered.valid] = np.nan
+    return scene, capture, new
+
+
+def test_no_layer_borrows_a_patch_far_away():
+    """No layer nearer than 0.3 (the depth map's reach): a nearer depth moves
+    a pixel far enough for a uniform new object to find a patch of its own
+    brightness by chance, and would call it parallax."""
+    scene, capture, new = _far_patch_pair()
+    camera = ops.Camera.for_shape(SHAPE)
+    reg = ops.register(scene, capture, camera=camera)
+    threshold = ops.detect_changes(reg, capture, camera=camera).threshold
+    near = ops.LayerParams(depths=(0.1,) + ops.LayerParams().depths)
+    borrowed = ops.depth_layers(reg, scene, capture, camera=camera, threshold=threshold, params=near)
+    assert borrowed.parallax[new].mean() > 0.9  # the scene does hold the chance: at depth 0.1 it is parallax
+    layers = ops.depth_layers(reg, scene, capture, camera=camera, threshold=threshold)
+    assert min(ops.LayerParams().depths) >= 0.3
+    assert not layers.parallax[new].any() and not layers.components
+
+
+def test_a_thin_rim_along_an_explained_structure_is_its_remnant():
+    """:func:`rims_along`: the pixels of rims thinner than 3 px that touch an
+    explained structure, even where the rim joins a new object; never a thick
+    candidate's own edge, nor the ring around a speck explained by chance."""
+    from rsmb.ops.depth._layers import rims_along
+
+    explained = np.zeros((40, 40), bool)
+    explained[10:30, 5:15] = True  # a structure the depth map explains
+    candidates = np.zeros_like(explained)
+    candidates[10:30, 18:30] = True  # a new object beside it
+    candidates[9, 5:20] = True  # a 1-px rim along the structure's top, joining the object
+    candidates[10:30, 15:17] = True  # a 2-px rim along its right side: the pixels that touch it
+    candidates[30:38, 5:15] = True  # a thick object against its bottom
+    rims = rims_along(candidates, explained, 20)
+    assert rims[9, 5:16].all() and rims[10:30, 15].all() and not rims[10:30, 16].any()
+    assert not rims[9, 17:20].any()  # thin, but touches no explained pixel
+    assert not rims[10:30, 18:30].any() and not rims[30:38, 5:15].any()
+    speck = np.zeros_like(explained)
+    speck[15:18, 19:22] = True  # a few pixels explained by chance inside the object, 1 px from its edge
+    assert rims_along(candidates & ~speck, speck, 1)[15:18, 18].all()  # as a structure, it would make a rim
+    assert not rims_along(candidates & ~speck, speck, 20).any()
