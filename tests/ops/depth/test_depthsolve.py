@@ -10,9 +10,8 @@ import pytest
 from scipy import ndimage
 
 from rsmb import ops
-from rsmb.ops._warp import _point
+from rsmb.ops._warp import _bilinear, _build_row, _inverse_map, _point
 from rsmb.ops.depth._depthsolve import _build_row_depth, _resolve_rows
-from rsmb.ops._warp import _bilinear, _build_row, _inverse_map
 
 
 def _texture(shape, seed):
