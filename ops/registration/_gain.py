@@ -12,37 +12,20 @@ __all__ = []
 
 GAIN_SLOPE_RESOLVE = 0.05  # relative gain change at the row ends that triggers another solve
 
-#: Windows at least this wide (px) divide a clear slope of the column blocks
-#: (:func:`_column_gain_guess`) out before their first round of rows: blocks of
-#: 32 px or more hold far more content than the motion moves in or out of them.
-#: On narrower windows the blocks' brightness moves with the content (a false
-#: slope of 8 % on a 128-px window without one), and it only replaces a fitted
-#: slope it agrees with.
-GUESS_FIRST_WIDTH = 512
-
-#: A slope of the column blocks is clear when it moves the gain across the
-#: window by at least this many times the blocks' median distance from it: a
-#: ramp of illumination puts every block on one line; content that the motion
-#: moves in and out of the blocks scatters them (a real rolling-shutter capture
-#: with a false 13 % slope: 2.4 times).  Only the order of the rounds depends
-#: on it: the fit after the first round measures what is left either way.
-GUESS_CLEAR = 4.0
-
 
 def _column_gain_guess(ref, dist, dvalid, ref_origin, dist_origin, blocks=16):
     """A first guess of the gain slope along the rows from the median brightness
     of column blocks of the capture against the same columns of the reference
     (motion moves content far less than a block; a robust line through the
     block ratios): the factor ``1 + b u`` per
-    column when it moves the row ends by more than GAIN_SLOPE_RESOLVE, else None;
-    and whether that slope is clear (:data:`GUESS_CLEAR`)."""
+    column when it moves the row ends by more than GAIN_SLOPE_RESOLVE, else None."""
     height, width = dist.shape
     dy, dx = dist_origin[0] - ref_origin[0], dist_origin[1] - ref_origin[1]
     if width < 4 * blocks or dy < 0 or dx < 0:
-        return None, False
+        return None
     same = ref[dy:dy + height, dx:dx + width]
     if same.shape != dist.shape:
-        return None, False
+        return None
     edges = np.linspace(0, width, blocks + 1).astype(int)
     offsets = _column_offsets(width)
     u, ratio = [], []
@@ -53,7 +36,7 @@ def _column_gain_guess(ref, dist, dvalid, ref_origin, dist_origin, blocks=16):
             u.append(offsets[c0:c1].mean())
             ratio.append(np.median(d) / np.median(r))
     if len(u) < 4:
-        return None, False
+        return None
     # Theil-Sen line: blocks holding changed objects are outvoted
     u, ratio = np.array(u), np.array(ratio)
     i, j = np.triu_indices(len(u), 1)
@@ -61,9 +44,8 @@ def _column_gain_guess(ref, dist, dvalid, ref_origin, dist_origin, blocks=16):
     level = float(np.median(ratio - slope * u))
     factor = 1.0 + slope / level * offsets
     if level <= 0 or factor.min() <= 0.25 or np.abs(factor - 1.0).max() <= GAIN_SLOPE_RESOLVE:
-        return None, False
-    scatter = float(np.median(np.abs(ratio - level - slope * u)))
-    return factor, abs(slope) * (u[-1] - u[0]) >= GUESS_CLEAR * scatter
+        return None
+    return factor
 
 
 def _gain_slope(out, dist, delta, iterations=8):

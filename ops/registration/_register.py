@@ -15,7 +15,7 @@ import numpy as np
 
 from .._camera import POSE_AXES, Camera
 from .._errors import ParameterError
-from ._gain import GAIN_SLOPE_RESOLVE, GUESS_FIRST_WIDTH, _column_gain_guess, _fold_gain, _gain_slope
+from ._gain import GAIN_SLOPE_RESOLVE, _column_gain_guess, _fold_gain, _gain_slope
 from .._oracle import optimal_chi
 from .._timing import UNTIMED, StageClock
 from ._params import RegistrationParams
@@ -150,43 +150,7 @@ def register(reference, distorted, *, camera=None, params=None, reference_origin
     # eq. 13 has one gain per row: a gain changing along the rows by more than a
     # few per cent biases the poses, so a slope fitted to the registration is
     # divided out of the capture and the rows are solved again (at most twice)
-    guess, clear = None, False
-    if params.gain_slope:
-        with clock.stage("gain_slope"):
-            guess, clear = _column_gain_guess(ref, dist, dvalid, reference_origin_yx, distorted_origin_yx)
-    solved = None
-    if clear and dist.shape[1] >= GUESS_FIRST_WIDTH:
-        # the column blocks' slope divided out before the first round: rows
-        # solved with a slope in their residual stray from one another, and
-        # each stray row costs a block solve (re-anchoring) that the next round
-        # redoes.  It is kept when the fit on that round leaves less than the
-        # rule lets stand; else the rows are solved again as without it
-        scaled = dist / guess
-        out, delta = _solve_rows(ref, scaled, dvalid, *args, slow, clock, start)
-        timings["shared_start"] = int(start is not None and out.shared_start)
-        with clock.stage("gain_slope"):
-            more = _gain_slope(out, scaled, delta)
-        if more is None or np.abs(more - 1.0).max() <= GAIN_SLOPE_RESOLVE:
-            solved = out, delta, guess if more is None else guess * more
-    if solved is None:
-        solved = _gain_rounds(ref, dist, dvalid, args, slow, clock, start, timings, params.gain_slope, guess)
-    out, delta, factor = solved
-    if factor is not None:
-        with clock.stage("gain_slope"):
-            _fold_gain(out, dist, factor, delta)
-    out.no_evidence_where_failed()
-    trajectory = np.concatenate([out.trajectory, _slow_columns(slow, params.slow_axes, dist.shape[0])], axis=1)
-    return Registration(out.registered, out.chi, out.valid, trajectory, out.row_gain, out.row_state,
-                        params.trajectory_axes, timings, out.weights, factor, slow)
-
-
-def _gain_rounds(ref, dist, dvalid, args, slow, clock, start, timings, fit, guess):
-    """The rows solved, a gain slope fitted (``fit``) and divided out of the
-    capture, and the rows solved again while the slope left moves the row
-    ends by more than GAIN_SLOPE_RESOLVE (three rounds at most; the rounds after
-    the first count as the gain slope's).  ``guess`` is the column blocks'
-    slope (or None).  Returns the last round's rows, the Huber knee and the
-    slope divided out (None without one)."""
+    # the rounds after the first count as the gain slope's
     factor, scaled = None, dist
     for attempt in range(3):
         rounds = clock if attempt == 0 else StageClock()
@@ -196,20 +160,28 @@ def _gain_rounds(ref, dist, dvalid, args, slow, clock, start, timings, fit, gues
         else:
             timings["shared_start"] = int(start is not None and out.shared_start)
         with clock.stage("gain_slope"):
-            more = _gain_slope(out, scaled, delta) if fit else None
+            more = _gain_slope(out, scaled, delta) if params.gain_slope else None
         if more is None:
             break
         resolve = np.abs(more - 1.0).max() > GAIN_SLOPE_RESOLVE
-        if resolve and attempt == 0 and guess is not None:
+        if resolve and attempt == 0:
             # a fit after a biased solve falls short of the slope; column-block
             # brightness is the better first estimate when it agrees and is larger
-            if (guess[-1] - guess[0]) / (more[-1] - more[0]) > 1.0:
+            with clock.stage("gain_slope"):
+                guess = _column_gain_guess(ref, dist, dvalid, reference_origin_yx, distorted_origin_yx)
+            if guess is not None and (guess[-1] - guess[0]) / (more[-1] - more[0]) > 1.0:
                 more = guess
         factor = more if factor is None else factor * more
         if not resolve:
             break
         scaled = dist / factor
-    return out, delta, factor
+    if factor is not None:
+        with clock.stage("gain_slope"):
+            _fold_gain(out, dist, factor, delta)
+    out.no_evidence_where_failed()
+    trajectory = np.concatenate([out.trajectory, _slow_columns(slow, params.slow_axes, dist.shape[0])], axis=1)
+    return Registration(out.registered, out.chi, out.valid, trajectory, out.row_gain, out.row_state,
+                        params.trajectory_axes, timings, out.weights, factor, slow)
 
 
 def find_start(reference, distorted, *, camera=None, params=None, reference_origin_yx=(0, 0),
