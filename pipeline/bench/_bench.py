@@ -293,7 +293,7 @@ def bench_real(data, workdir, *, workers=None):
             "rsmb_over_best_homography": rmse["rsmb"] / best_homography, "rsmb_over_dis": rmse["rsmb"] / rmse["dis"],
             "false_change_fraction": s.changed_fraction, "parallax_fraction": s.parallax_pixels / distorted.size,
             "false_change_fraction_no_layers": off.changed_fraction,
-            "clipped_fraction": max(s.clipped_reference, s.clipped_capture)}
+            "clipped_fraction": max(s.clipped_reference, s.clipped_capture), "stage_cpu_s": s.timings["cpu_s"]}
         _echo(f"real {name} ({distorted.shape[0]} x {distorted.shape[1]}): registration RMSE rsmb {rmse['rsmb']:.2f}, "
               f"ECC homography {rmse['ecc']:.2f}, ORB homography {rmse['orb']:.2f}, DIS dense flow {rmse['dis']:.2f} "
               f"(no registration {r['identity_rmse_255']:.2f}; 0..255 on the {100 * r['common_fraction']:.0f} % all "
@@ -302,7 +302,10 @@ def bench_real(data, workdir, *, workers=None):
               f"{100 * r['parallax_fraction']:.2f} %); rsmb {seconds['rsmb']:.1f} s, DIS {seconds['dis']:.2f} s; "
               f"with --no-layers: RMSE {rmse['rsmb --no-layers']:.2f}, false changes "
               f"{100 * r['false_change_fraction_no_layers']:.2f} %, {seconds['rsmb --no-layers']:.1f} s")
-    if not out:
+    if out:  # where each real capture's CPU goes (re-anchoring: the block solves of rows that jumped)
+        _echo("real captures, CPU-seconds by stage")
+        _echo(stage_table({name: r["stage_cpu_s"] for name, r in out.items()}))
+    else:
         _echo(f"real: no rolling-shutter captures under {data}; skipped")
     return out
 
@@ -420,10 +423,12 @@ def bench_gain(workdir, *, size=2048, workers=None):
     store = Path(workdir, "gain.zarr")
     detect(ref, dist, store, workers=workers, overwrite=True)
     scores = evaluate(store, directory)
+    cpu = tiles.open_result_store(store).attrs["summary"]["timings"]["cpu_s"]
     out = {"max_relative_gain_error": scores.gain["max_relative_error"],
-           "f_measure": scores.changes.f_measure}
+           "f_measure": scores.changes.f_measure, "stage_cpu_s": cpu}
     _echo(f"gain ramp 0.7 -> 1.3 ({size} x {size}): per-tile gain error max "
-          f"{100 * out['max_relative_gain_error']:.2f} %, F {out['f_measure']:.3f}")
+          f"{100 * out['max_relative_gain_error']:.2f} %, F {out['f_measure']:.3f}; {cpu['total']:.1f} CPU-s, "
+          f"re-anchoring {cpu['reanchor']:.1f}, gain-slope rounds {cpu['gain_slope']:.1f}, rows {cpu['rows']:.1f}")
     return out
 
 
