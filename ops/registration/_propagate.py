@@ -19,7 +19,7 @@ from .._warp import _inverse_map, _point
 from ._propagate_kernels import (_Capture, _Context, _follow, _Gather, _jumps, _Lattice, _Neighbour, _Prewarp,
                                  _propagate_rows, _Row, _row_step, _RowOutputs, _Source, _trust_state)
 from ._rowproblem import _centroid
-from ._start import _refine
+from ._start import _refine_start
 
 __all__ = []
 
@@ -88,7 +88,6 @@ class _Propagation:
         self.px_per_unit = _px_per_unit(solver.problem)
         self.corner_shifts = _corner_shifts(solver.problem)
         self._arrays = None
-        self._last_block = None  # the last re-anchoring's rows and its solve's (poses, weights)
 
     def solve_row(self, i, c, neighbour):
         space = self.space
@@ -280,17 +279,9 @@ class _Propagation:
         # a grid holding both poses, at most twice the row neighbourhood wide:
         # a row that jumped farther than that is not a pose worth holding
         uncertainty = np.minimum(np.abs(own - predicted), 2 * np.asarray(self.space.half_width)) + self.step
-        # a row that jumps again within the last re-anchoring's block (most do,
-        # a row or two later) starts its block's solve from that block's
-        # weights instead of a solve on a coarser lattice: the same optimum
-        # (eq. 13 is convex), reached in fewer passes
-        warm = None
-        if self._last_block is not None and set(block) & self._last_block[0]:
-            warm = self._last_block[1]
         with self.solver.clock.stage("reanchor"):
-            center, _, _, solved = _refine(self.solver, predicted, np.sort(block), uncertainty, 2,
-                                           np.ones(len(self.step)), warm=warm)
-        self._last_block = (set(block), solved) if solved is not None else None
+            center, _, _ = _refine_start(self.solver, predicted, np.sort(block), uncertainty, iterations=2,
+                                         stride=np.ones(len(self.step)))
         dims = len(self.step)
         trust[:dims] = center
         trust[2 * dims] = rows[0]

@@ -83,24 +83,3 @@ def test_a_row_jumps_by_how_far_its_pose_moves_the_windows_pixels():
     assert not _jumps(row, 41, per_unit, shifts, trust, predicted)
     # a real step of the path is still one: a pixel's worth of ty
     assert _jumps(np.array([0.0, 1.2 * DRIFT_PX, 0.0]), 41, per_unit, shifts, trust, predicted)
-
-
-def test_rows_that_jump_again_start_their_block_from_the_last_one(monkeypatch):
-    """On a gain ramp across the rows (the first round's rows stray), most
-    re-anchorings fall inside the last one's block and start from its
-    weights; the path is the one cold-started blocks give."""
-    refine, given, cold = _propagate._refine, [], [False]
-
-    def counted(solver, center, rows, uncertainty, iterations, stride, warm=None):
-        given.append(warm is not None)
-        return refine(solver, center, rows, uncertainty, iterations, stride, warm=None if cold[0] else warm)
-
-    monkeypatch.setattr(_propagate, "_refine", counted)
-    pair = ops.synthesize_pair((256, 256), motion="inplane", gain=(0.75, 1.25), changes=8, noise=0.002, seed=0)
-    params = ops.RegistrationParams(slow_axes=())
-    fast = ops.register(pair.reference, pair.distorted, camera=pair.camera, params=params)
-    assert len(given) >= 50 and sum(given) >= 0.8 * len(given)
-    cold[0] = True
-    slow = ops.register(pair.reference, pair.distorted, camera=pair.camera, params=params)
-    np.testing.assert_allclose(fast.trajectory, slow.trajectory, atol=1e-3)
-    np.testing.assert_array_equal(fast.row_state, slow.row_state)

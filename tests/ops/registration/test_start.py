@@ -75,21 +75,6 @@ def test_a_second_iteration_on_the_same_grid_is_not_solved_again():
     np.testing.assert_allclose(again[0], _refine_start(solver, center, rows, uncertainty, 1, np.ones(3))[0])
 
 
-def test_a_block_warm_from_the_block_a_row_before_reaches_the_cold_optimum():
-    """A re-anchoring inside the last one's block starts from that block's
-    weights (ops.registration._propagate): no solve on the coarser lattice,
-    and the optimum a cold start reaches on the same grid."""
-    solver, rows, truth = _solver()
-    uncertainty, stride = np.array([1.0, 1.0, 0.1]), np.ones(3)
-    before = _refine(solver, truth, rows, uncertainty, 2, stride)[3]
-    counting = _Counting(solver)
-    center, _, cost, _ = _refine(counting, truth, rows + 1, uncertainty, 1, stride, warm=before)
-    assert counting.cold == 0 and counting.warm == 1
-    _, poses, w, _, _ = solver.solve(rows + 1, _block_space(solver, uncertainty, stride), truth)  # cold
-    assert abs(cost - solver.last_cost) <= 1e-9 * solver.last_cost
-    np.testing.assert_allclose(center, _centroid(poses, w), atol=1e-4)
-
-
 def test_carried_weights_land_on_equal_poses_of_the_finer_grid():
     from rsmb.ops._posespace import PoseSpace
 
