@@ -410,6 +410,14 @@ def keep_components(area, peak, threshold, *, params=ChangeParams()):
     return keep
 
 
+def over_threshold(chi, valid, threshold):
+    """The valid pixels of a registration whose change term alone exceeds
+    ``threshold`` (score units): ``|chi| > threshold`` (bool), before any
+    allowance or hysteresis (:func:`change_candidates`).  The one rule the
+    re-grounding, the depth layers and their rims start from."""
+    return (np.abs(chi) > threshold) & valid
+
+
 def large_components(mask, min_area, *, connectivity=2, border=False):
     """The components of ``mask`` with at least ``min_area`` pixels: the one
     label-and-area filter of rsmb.

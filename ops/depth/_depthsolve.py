@@ -37,6 +37,7 @@ from .._camera import full_poses
 from ._depthmap import _geometry, _RowPoses, depth_map
 from ._layers import LayerParams, depth_layers, rims_along, sees_a_layer_elsewhere
 from .._oracle import _huber_loss, optimal_chi
+from ..changes._changes import over_threshold
 from ..registration._rowproblem import _centroid, _Solver
 from ..registration._rowsolve import MAX_ADD, MAX_OUTER, TOL, _solve_huber_nn
 from .._warp import _bilinear, _inverse_map, _point, _point_on_row, _row_map
@@ -151,7 +152,7 @@ def _one_step(registration, reference, g, windows, allowed=None):
     layers.parallax = layers.parallax | dense.explained
     # a candidate's rims along the structures the depth map explains are their
     # remnant, as a layer's are: no evidence (chi 0), in parallax
-    left = registration.valid & (np.abs(dense.chi) > windows["threshold"]) & ~layers.parallax
+    left = over_threshold(dense.chi, registration.valid, windows["threshold"]) & ~layers.parallax
     rims = rims_along(left, dense.explained, LayerParams().min_area)
     if rims.any():
         dense.chi[rims] = 0.0

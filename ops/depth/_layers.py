@@ -53,7 +53,7 @@ from scipy import ndimage
 
 from .._camera import full_poses, pose_homographies
 from .._oracle import optimal_chi
-from ..changes._changes import large_components
+from ..changes._changes import large_components, over_threshold
 from ._depthmap import _geometry, _RowPoses, render_at
 
 __all__ = ["LayerParams", "LayerResult", "depth_layers", "sees_a_layer_elsewhere"]
@@ -165,7 +165,7 @@ def depth_layers(registration, reference, distorted, *, camera, threshold, refer
     """
     params = params or LayerParams()
     out = LayerResult(np.zeros(distorted.shape, bool), registration.registered.copy(), registration.chi.copy())
-    candidates = (np.abs(registration.chi) > threshold) & registration.valid
+    candidates = over_threshold(registration.chi, registration.valid, threshold)
     labels, count = ndimage.label(_dilate(candidates, cv2.MORPH_CROSS, 1), structure=np.ones((3, 3)))
     if count == 0:
         return out

@@ -30,7 +30,7 @@ from scipy import ndimage
 
 from .._oracle import _huber_loss, optimal_chi
 from .._timing import StageClock
-from ..changes._changes import large_components
+from ..changes._changes import large_components, over_threshold
 from ._propagate import _px_per_unit
 from ._rowproblem import _centroid, _RowProblem, _shift_margin, _Solver, _spread
 from ._start import _adapted_half_width
@@ -146,7 +146,7 @@ def _ty_half_width(params):
 
 def _outliers(reg, threshold, min_area):
     """Candidate changes (components of at least ``min_area`` pixels) grown by :data:`RIM_PX`."""
-    candidates = (np.abs(reg.chi) > threshold) & reg.valid
+    candidates = over_threshold(reg.chi, reg.valid, threshold)
     if not candidates.any():
         return candidates
     size = 2 * RIM_PX + 1
