@@ -1,13 +1,32 @@
 """Baselines for comparison, what a user would pick instead: one global
 homography by ECC or by ORB features (OpenCV), as most registration tools do,
-and dense optical flow (OpenCV DIS); no rolling-shutter or blur model."""
+and dense optical flow (OpenCV DIS); no rolling-shutter or blur model.
 
+A baseline is timed on as many cores as rsmb is given (:func:`opencv_threads`):
+the ``rsmb`` command's process runs OpenCV on one thread (its tiles use the
+cores), which would leave a parallel baseline such as DIS a single core.
+"""
+
+import contextlib
+import os
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-__all__ = ["EccResult", "ecc_homography", "orb_homography", "dis_flow"]
+__all__ = ["EccResult", "ecc_homography", "orb_homography", "dis_flow", "opencv_threads"]
+
+
+@contextlib.contextmanager
+def opencv_threads(workers=None):
+    """OpenCV on ``workers`` threads (default: every core) inside the block,
+    its thread count as it was after."""
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(int(workers or os.cpu_count() or 1))
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
 
 
 @dataclass(frozen=True)

@@ -61,7 +61,7 @@ from ..detection._detect import detect
 from ..detection._plan import DetectConfig, default_tile
 from .._evaluate import evaluate
 from .._synth import write_pair
-from ._baseline import dis_flow, ecc_homography, orb_homography
+from ._baseline import dis_flow, ecc_homography, opencv_threads, orb_homography
 
 __all__ = ["SECTIONS", "run_bench"]
 
@@ -182,7 +182,7 @@ def bench_speed(workdir, *, size=2048, workers=None):
         scores = evaluate(Path(workdir, f"{name}.zarr"), Path(workdir, "speed_inplane"))
         out[name] = {"megapixels_per_s": s.megapixels_per_s, "seconds": s.timings["total_s"],
                      "f_measure": scores.changes.f_measure, "cpu_s": s.timings["cpu_s"]}
-    _dis_beside(out, pair, Path(workdir, "inplane_auto_neighbourhoods.zarr"))
+    _dis_beside(out, pair, Path(workdir, "inplane_auto_neighbourhoods.zarr"), workers)
     t = time.perf_counter()
     ecc = ecc_homography(pair.reference, pair.distorted)
     out["ecc_seconds"] = time.perf_counter() - t
@@ -222,16 +222,18 @@ def bench_speed(workdir, *, size=2048, workers=None):
     return out
 
 
-def _dis_beside(out, pair, store):
+def _dis_beside(out, pair, store, workers):
     """DIS dense flow (medium) with rsmb's change rule on the in-plane pair, in
-    the same run (:func:`pipeline.bench._bench_realclip.dis_changes`): its
-    seconds and F-measure, and rsmb's time as a ratio of it."""
+    the same run (:func:`pipeline.bench._bench_realclip.dis_changes`, OpenCV
+    on ``workers`` threads, rsmb's cores): its seconds and F-measure, and
+    rsmb's time as a ratio of it."""
     from ._bench_realclip import dis_changes
 
     factor = ops.IntensityScale.from_dict(tiles.open_result_store(store).attrs["intensity"]).scaled(1.0)
     t = time.perf_counter()
-    mask = dis_changes(np.clip(pair.reference, 0, 1).astype(np.float32),
-                       np.clip(pair.distorted, 0, 1).astype(np.float32), factor=factor)
+    with opencv_threads(workers):  # DIS on the cores rsmb had
+        mask = dis_changes(np.clip(pair.reference, 0, 1).astype(np.float32),
+                           np.clip(pair.distorted, 0, 1).astype(np.float32), factor=factor)
     out["dis"] = {"seconds": time.perf_counter() - t, "f_measure": ops.confusion(mask, pair.change_mask).f_measure}
     out["rsmb_over_dis_seconds"] = out["inplane_auto_neighbourhoods"]["seconds"] / out["dis"]["seconds"]
 
@@ -283,7 +285,8 @@ def bench_real(data, workdir, *, workers=None):
                             ("orb", lambda: orb_homography(reference, distorted).registered),
                             ("dis", lambda: dis_flow(reference, distorted))):
             t = time.perf_counter()
-            registered[method] = run()
+            with opencv_threads(workers):  # on the cores rsmb had
+                registered[method] = run()
             seconds[method] = time.perf_counter() - t
         common = np.all([np.isfinite(r) for r in registered.values()], axis=0)
         rmse = {k: float(np.sqrt(np.mean((r[common] - distorted[common]) ** 2)) * 255) for k, r in registered.items()}
