@@ -410,31 +410,40 @@ def _render_depth(scene, q, mask, runs, out, r0, c0):
     ``q`` (translations and scale times ``q``, rotations as they are) applied
     to the reference at column ``c0 + j``, times the column gain, where
     ``mask`` (nonzero only within ``runs``, :func:`_runs`); NaN where a pose
-    leaves valid reference data.  Pose by pose along the row, each pose's map
-    reduced to the row once (:func:`_row_map`)."""
+    leaves valid reference data.  Each pose's map is reduced to the row once
+    (:func:`_row_map`); each pixel then sums its row's poses in their order
+    in a register, and stops at the first pose that leaves valid data."""
     height, width = out.shape
     per_column = scene.gain.shape[0] != 1
-    acc = np.empty(width)
     poses6 = scene.poses6
+    most = 0
+    for i in range(height):
+        most = max(most, scene.offsets[r0 + i + 1] - scene.offsets[r0 + i])
+    rows = np.empty((most, 11))
     for i in range(height):
         s0, s1 = scene.offsets[r0 + i], scene.offsets[r0 + i + 1]
         r_a, r_b = runs.offsets[i], runs.offsets[i + 1]
         if s0 == s1 or r_a == r_b:
             continue
-        for r in range(r_a, r_b):
-            acc[runs.starts[r]:runs.ends[r]] = 0.0
         for k in range(s0, s1):
             row = _row_map(scene.maps[k], poses6[k, 0] * q, poses6[k, 1] * q, 1.0 + poses6[k, 2] * q,
                            r0 + i + scene.dy, scene.cx, scene.cy)
-            for r in range(r_a, r_b):
-                for j in range(runs.starts[r], runs.ends[r]):
-                    if mask[i, j] != 0:
-                        u, v = _point_on_row(row, c0 + j + scene.dx)
-                        acc[j] += scene.weights[k] * _bilinear(scene.ref, u, v)  # NaN stays NaN
+            for t in range(11):
+                rows[k - s0, t] = row[t]
         for r in range(r_a, r_b):
             for j in range(runs.starts[r], runs.ends[r]):
-                if mask[i, j] != 0 and not math.isnan(acc[j]):
-                    out[i, j] = acc[j] * (scene.gain[c0 + j] if per_column else 1.0)
+                if mask[i, j] == 0:
+                    continue
+                x = c0 + j + scene.dx
+                acc = 0.0
+                for k in range(s0, s1):
+                    m = rows[k - s0]
+                    u, v = _point_on_row((m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8], m[9], m[10]), x)
+                    acc += scene.weights[k] * _bilinear(scene.ref, u, v)  # NaN stays NaN
+                    if math.isnan(acc):
+                        break
+                if not math.isnan(acc):
+                    out[i, j] = acc * (scene.gain[c0 + j] if per_column else 1.0)
 
 
 @numba.njit(nogil=True, cache=True)
