@@ -235,11 +235,17 @@ def _grid(space, poses, w):
 def _warm_start(space, index, poses, w):
     """The row's weights on the grid ``index`` (their lattice points)."""
     out = np.zeros(len(index))
-    lookup = {tuple(k): n for n, k in enumerate(index.tolist())}
-    for p, v in zip(np.rint(poses / np.asarray(space.step)).astype(np.int64).tolist(), w):
-        n = lookup.get(tuple(p))
-        if n is not None:
-            out[n] += v
+    if not len(index) or not len(poses):
+        return out
+    index = np.asarray(index, np.int64)
+    points = np.rint(poses / np.asarray(space.step)).astype(np.int64)
+    lo = index.min(axis=0)
+    dims = index.max(axis=0) - lo + 1
+    inside = np.all((points >= lo) & (points < lo + dims), axis=1)
+    table = np.full(int(np.prod(dims)), -1, np.int64)  # the grid's row of each lattice point of its box
+    table[np.ravel_multi_index(tuple((index - lo).T), dims)] = np.arange(len(index))
+    at = table[np.ravel_multi_index(tuple((points[inside] - lo).T), dims)]
+    np.add.at(out, at[at >= 0], np.asarray(w, np.float64)[inside][at >= 0])  # in the poses' order, as one loop would
     return out
 
 
@@ -281,8 +287,7 @@ def _build_row_depth(ref, poses6, q, focal, cx, cy, y, dx, out):
     each pose's map reduced to the row once per inverse depth the row holds."""
     poses6 = np.ascontiguousarray(poses6, np.float64)
     key = np.column_stack([poses6[:, 1:], poses6[:, 0] - np.floor(poses6[:, 0])])
-    _, group = np.unique(key, axis=0, return_inverse=True)
-    group = group.ravel()
+    group = _row_groups(key)
     order = np.argsort(group, kind="stable")
     starts = np.searchsorted(group[order], np.arange(group.max() + 2 if len(group) else 1))
     q = np.asarray(q, np.float64)
@@ -294,6 +299,20 @@ def _build_row_depth(ref, poses6, q, focal, cx, cy, y, dx, out):
     row = _DepthRow(ref, poses6, q, order, starts, depths, by_depth, depth_starts, float(focal), float(cx),
                     float(cy), float(y), float(dx))
     return _columns_at_depth(row, out)
+
+
+def _row_groups(key):
+    """Group number of each row of ``key`` (K, n): rows of equal values share
+    one, numbered in the rows' lexicographic order (``np.unique(key, axis=0,
+    return_inverse=True)``'s numbers, by one sort of the columns)."""
+    if not len(key):
+        return np.zeros(0, np.int64)
+    order = np.lexsort(key.T[::-1])
+    ranked = key[order]
+    new = np.concatenate([[True], np.any(ranked[1:] != ranked[:-1], axis=1)])
+    group = np.empty(len(key), np.int64)
+    group[order] = np.cumsum(new) - 1
+    return group
 
 
 @numba.njit(nogil=True, cache=True)
