@@ -195,7 +195,7 @@ def _resolve_rows(registration, reference, g, inverse_depth, exclude, rows, came
         wanted = registration.valid[i] & ~exclude[i]
         if wanted.sum() < _Solver.min_valid(wanted.size):
             continue
-        a = np.zeros((len(grid), g.shape[1]), np.float32)
+        a = np.empty((len(grid), g.shape[1]), np.float32)  # every value written by _build_row_depth
         ok = _build_row_depth(ref, poses6, np.where(wanted, inverse_depth[i], np.nan), focal, cx, cy, i + dy, dx, a)
         use = (ok == 1) & wanted
         if use.sum() < _Solver.min_valid(use.size):
