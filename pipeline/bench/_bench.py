@@ -184,7 +184,8 @@ def bench_speed(workdir, *, size=2048, workers=None):
                      "f_measure": scores.changes.f_measure, "cpu_s": s.timings["cpu_s"]}
     _dis_beside(out, pair, Path(workdir, "inplane_auto_neighbourhoods.zarr"), workers)
     t = time.perf_counter()
-    ecc = ecc_homography(pair.reference, pair.distorted)
+    with opencv_threads(workers):
+        ecc = ecc_homography(pair.reference, pair.distorted)
     out["ecc_seconds"] = time.perf_counter() - t
     keep = np.isfinite(ecc.registered) & ~pair.change_mask
     out["ecc_registration_rmse_255"] = float(np.sqrt(np.mean((ecc.registered - pair.distorted)[keep] ** 2)) * 255)
@@ -213,7 +214,8 @@ def bench_speed(workdir, *, size=2048, workers=None):
           f"{out[f'translation_only_{2 * size}']['megapixels_per_s']:.2f} MP/s); ECC homography "
           f"{out['ecc_seconds']:.2f} s "
           f"on the same image (its registration RMSE {out['ecc_registration_rmse_255']:.2f} /255)")
-    _echo(f"speed ({size} x {size}): DIS dense flow (medium) with rsmb's change rule on the same pair "
+    _echo(f"speed ({size} x {size}): DIS dense flow (medium, OpenCV on {workers or os.cpu_count()} threads) with "
+          f"rsmb's change rule on the same pair "
           f"{out['dis']['seconds']:.2f} s, F {out['dis']['f_measure']:.3f}; rsmb (automatic neighbourhoods) "
           f"{out['inplane_auto_neighbourhoods']['seconds']:.2f} s, F {out['inplane_auto_neighbourhoods']['f_measure']:.3f}:"
           f" {out['rsmb_over_dis_seconds']:.2f}x DIS's time")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from rsmb.ops import aerial_scene
-from rsmb.pipeline.bench._baseline import dis_flow, ecc_homography, orb_homography
+from rsmb.pipeline.bench._baseline import dis_flow, ecc_homography, opencv_threads, orb_homography
 
 
 @pytest.fixture(scope="module")
@@ -45,3 +45,18 @@ def test_dis_flow_registers_the_pair(pair):
     registered = dis_flow(reference, distorted)
     assert registered.shape == distorted.shape and registered.dtype == np.float32
     assert _rmse(registered, distorted) < 0.5 * _rmse(reference, distorted)
+
+
+def test_baselines_are_timed_on_the_cores_rsmb_has_and_leave_opencv_as_they_found_it():
+    # the rsmb command runs OpenCV on one thread; a baseline timed beside it gets rsmb's cores
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with opencv_threads(2):
+            assert cv2.getNumThreads() == 2
+        assert cv2.getNumThreads() == 1
+        with pytest.raises(RuntimeError), opencv_threads(3):
+            raise RuntimeError("a baseline that fails")
+        assert cv2.getNumThreads() == 1
+    finally:
+        cv2.setNumThreads(before)
