@@ -303,8 +303,10 @@ def _build_row_depth(ref, poses6, q, focal, cx, cy, y, dx, out):
 
 def _row_groups(key):
     """Group number of each row of ``key`` (K, n): rows of equal values share
-    one, numbered in the rows' lexicographic order (``np.unique(key, axis=0,
-    return_inverse=True)``'s numbers, by one sort of the columns)."""
+    one, numbered in the rows' lexicographic order (for finite keys
+    ``np.unique(key, axis=0, return_inverse=True)``'s numbers, by one sort of
+    the columns; a row holding NaN is a group of its own).  The caller needs
+    the groups, not their numbers."""
     if not len(key):
         return np.zeros(0, np.int64)
     order = np.lexsort(key.T[::-1])

@@ -214,7 +214,7 @@ def bench_speed(workdir, *, size=2048, workers=None):
           f"{out[f'translation_only_{2 * size}']['megapixels_per_s']:.2f} MP/s); ECC homography "
           f"{out['ecc_seconds']:.2f} s "
           f"on the same image (its registration RMSE {out['ecc_registration_rmse_255']:.2f} /255)")
-    _echo(f"speed ({size} x {size}): DIS dense flow (medium, OpenCV on {workers or os.cpu_count()} threads) with "
+    _echo(f"speed ({size} x {size}): DIS dense flow (medium, OpenCV on {workers or os.cpu_count() or 1} threads) with "
           f"rsmb's change rule on the same pair "
           f"{out['dis']['seconds']:.2f} s, F {out['dis']['f_measure']:.3f}; rsmb (automatic neighbourhoods) "
           f"{out['inplane_auto_neighbourhoods']['seconds']:.2f} s, F {out['inplane_auto_neighbourhoods']['f_measure']:.3f}:"

@@ -317,7 +317,8 @@ def bench_realclip(data, workdir, *, size=4096, workers=None):
           f"({100 * out['no_evidence_model_at_clip']:.2f} % with the model at that clip level) "
           f"({100 * out['no_evidence']:.2f} % of all; registered NaN on {100 * out['registered_nan_beyond_border']:.2f} % "
           f"beyond the border), {seconds:.1f} s ({cpu:.1f} CPU-s); DIS dense flow (medium, OpenCV on "
-          f"{workers or os.cpu_count()} threads) with rsmb's change rule F {d.f_measure:.3f} (P {d.precision:.3f}, R {d.recall:.3f}, recall on clipped areas "
+          f"{workers or os.cpu_count() or 1} threads) with rsmb's change rule F {d.f_measure:.3f} "
+          f"(P {d.precision:.3f}, R {d.recall:.3f}, recall on clipped areas "
           f"{out['dis']['recall_on_clipped']:.3f}), {out['dis_seconds']:.1f} s: rsmb takes "
           f"{out['rsmb_over_dis_seconds']:.2f}x DIS's time")
     shutil.rmtree(directory, ignore_errors=True)
