@@ -245,7 +245,8 @@ def _warm_start(space, index, poses, w):
     table = np.full(int(np.prod(dims)), -1, np.int64)  # the grid's row of each lattice point of its box
     table[np.ravel_multi_index(tuple((index - lo).T), dims)] = np.arange(len(index))
     at = table[np.ravel_multi_index(tuple((points[inside] - lo).T), dims)]
-    np.add.at(out, at[at >= 0], np.asarray(w, np.float64)[inside][at >= 0])  # in the poses' order, as one loop would
+    on_grid = at >= 0
+    np.add.at(out, at[on_grid], np.asarray(w, np.float64)[inside][on_grid])  # in the poses' order, as one loop would
     return out
 
 

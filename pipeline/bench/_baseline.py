@@ -20,13 +20,14 @@ __all__ = ["EccResult", "ecc_homography", "orb_homography", "dis_flow", "opencv_
 @contextlib.contextmanager
 def opencv_threads(workers=None):
     """OpenCV on ``workers`` threads (default: every core) inside the block,
-    its thread count as it was after.  The count is the process's: call it
-    only while no rsmb run is under way in this process (its tasks set
-    OpenCV to one thread and restore it, :mod:`pipeline._scheduler`)."""
-    before = cv2.getNumThreads()
-    cv2.setNumThreads(int(workers or os.cpu_count() or 1))
+    which is given that count; its thread count as it was after.  The count
+    is the process's: call it only while no rsmb run is under way in this
+    process (its tasks set OpenCV to one thread and restore it,
+    :mod:`pipeline._scheduler`)."""
+    before, threads = cv2.getNumThreads(), int(workers or os.cpu_count() or 1)
+    cv2.setNumThreads(threads)
     try:
-        yield
+        yield threads
     finally:
         cv2.setNumThreads(before)
 

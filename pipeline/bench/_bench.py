@@ -214,7 +214,7 @@ def bench_speed(workdir, *, size=2048, workers=None):
           f"{out[f'translation_only_{2 * size}']['megapixels_per_s']:.2f} MP/s); ECC homography "
           f"{out['ecc_seconds']:.2f} s "
           f"on the same image (its registration RMSE {out['ecc_registration_rmse_255']:.2f} /255)")
-    _echo(f"speed ({size} x {size}): DIS dense flow (medium, OpenCV on {workers or os.cpu_count() or 1} threads) with "
+    _echo(f"speed ({size} x {size}): DIS dense flow (medium, OpenCV on {out['dis']['threads']} threads) with "
           f"rsmb's change rule on the same pair "
           f"{out['dis']['seconds']:.2f} s, F {out['dis']['f_measure']:.3f}; rsmb (automatic neighbourhoods) "
           f"{out['inplane_auto_neighbourhoods']['seconds']:.2f} s, F {out['inplane_auto_neighbourhoods']['f_measure']:.3f}:"
@@ -233,10 +233,10 @@ def _dis_beside(out, pair, store, workers):
 
     factor = ops.IntensityScale.from_dict(tiles.open_result_store(store).attrs["intensity"]).scaled(1.0)
     t = time.perf_counter()
-    with opencv_threads(workers):  # DIS on the cores rsmb had
+    with opencv_threads(workers) as threads:  # DIS on the cores rsmb had
         mask = dis_changes(np.clip(pair.reference, 0, 1).astype(np.float32),
                            np.clip(pair.distorted, 0, 1).astype(np.float32), factor=factor)
-    out["dis"] = {"seconds": time.perf_counter() - t, "f_measure": ops.confusion(mask, pair.change_mask).f_measure}
+    out["dis"] = {"seconds": time.perf_counter() - t, "threads": threads, "f_measure": ops.confusion(mask, pair.change_mask).f_measure}
     out["rsmb_over_dis_seconds"] = out["inplane_auto_neighbourhoods"]["seconds"] / out["dis"]["seconds"]
 
 

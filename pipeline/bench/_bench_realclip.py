@@ -23,7 +23,6 @@ the interpolation allowance, the noise threshold, components) on the common
 intensity scale rsmb chose.
 """
 
-import os
 import shutil
 import time
 from pathlib import Path
@@ -300,12 +299,12 @@ def bench_realclip(data, workdir, *, size=4096, workers=None):
     t = time.perf_counter()
     reference = pair.reference.astype(np.float32) / 255.0
     capture = pair.capture.astype(np.float32) / 255.0
-    with opencv_threads(workers):  # DIS on the cores rsmb had
+    with opencv_threads(workers) as threads:  # DIS on the cores rsmb had
         dis_mask = dis_changes(reference, capture, factor=factor)
     out["dis_seconds"] = time.perf_counter() - t
     out["rsmb_over_dis_seconds"] = seconds / out["dis_seconds"]
     d = ops.confusion(dis_mask, pair.change_mask)
-    out["dis"] = {"f_measure": d.f_measure, "precision": d.precision, "recall": d.recall,
+    out["dis"] = {"threads": threads, "f_measure": d.f_measure, "precision": d.precision, "recall": d.recall,
                   "recall_on_clipped": float(dis_mask[pair.on_clipped].mean()) if pair.on_clipped.any()
                   else float("nan")}
     _echo(f"realclip {size} x {size} (aerials {', '.join(p.stem for p in paths)}, {100 * out['reference_clipped']:.1f} "
@@ -317,7 +316,7 @@ def bench_realclip(data, workdir, *, size=4096, workers=None):
           f"({100 * out['no_evidence_model_at_clip']:.2f} % with the model at that clip level) "
           f"({100 * out['no_evidence']:.2f} % of all; registered NaN on {100 * out['registered_nan_beyond_border']:.2f} % "
           f"beyond the border), {seconds:.1f} s ({cpu:.1f} CPU-s); DIS dense flow (medium, OpenCV on "
-          f"{workers or os.cpu_count() or 1} threads) with rsmb's change rule F {d.f_measure:.3f} "
+          f"{threads} threads) with rsmb's change rule F {d.f_measure:.3f} "
           f"(P {d.precision:.3f}, R {d.recall:.3f}, recall on clipped areas "
           f"{out['dis']['recall_on_clipped']:.3f}), {out['dis_seconds']:.1f} s: rsmb takes "
           f"{out['rsmb_over_dis_seconds']:.2f}x DIS's time")

@@ -52,8 +52,8 @@ def test_baselines_are_timed_on_the_cores_rsmb_has_and_leave_opencv_as_they_foun
     before = cv2.getNumThreads()
     cv2.setNumThreads(1)
     try:
-        with opencv_threads(2):
-            assert cv2.getNumThreads() == 2
+        with opencv_threads(2) as threads:
+            assert cv2.getNumThreads() == 2 and threads == 2
         assert cv2.getNumThreads() == 1
         with pytest.raises(RuntimeError), opencv_threads(3):
             raise RuntimeError("a baseline that fails")
