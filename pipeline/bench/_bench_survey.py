@@ -244,7 +244,11 @@ def bench_night(data, workdir, *, captures=8, side=1024, detect_side=4096):
                                       changes=10 * (detect_side // side) ** 2, exposure=32.0),
                           hand_cut=work / "large" / "pair")
     megapixels = captures * side * side / 1e6
-    cmd = ["survey", *references, "--captures", work / "incoming" / "*.tif", "-o", work / "out", "--json", "--settle", "0"]
+    def night_cmd(out, *extra):
+        return ["survey", *references, "--captures", work / "incoming" / "*.tif", "-o", out, "--json", "--settle", "0",
+                *extra]
+
+    cmd = night_cmd(work / "out")
     start, cpu = time.perf_counter(), _child_cpu()
     first = _measured("-q", *cmd, codes=(0, 3))  # 3: some captures failed (counted below)
     night_s, night_cpu = time.perf_counter() - start, _child_cpu() - cpu
@@ -252,6 +256,10 @@ def bench_night(data, workdir, *, captures=8, side=1024, detect_side=4096):
     start, cpu = time.perf_counter(), _child_cpu()
     again = json.loads(_measured("-q", *cmd, codes=(0, 3)).stdout)
     rerun_s, rerun_cpu = time.perf_counter() - start, _child_cpu() - cpu
+    # the same night without the captures' HTML reports: the reports' share of the night
+    start, cpu = time.perf_counter(), _child_cpu()
+    _measured("-q", *night_cmd(work / "out_no_report", "--no-report"), codes=(0, 3))
+    no_report_s, no_report_cpu = time.perf_counter() - start, _child_cpu() - cpu
     ref, dist = large.reference, large.distorted
     start, cpu = time.perf_counter(), _child_cpu()
     single = _measured("-q", "detect", ref, dist, "-o", work / "large.zarr")
@@ -260,7 +268,8 @@ def bench_night(data, workdir, *, captures=8, side=1024, detect_side=4096):
               for c in summary["captures"] if c["status"] == "done"]
     out = {"scene": source, "captures": captures, "side": side, "night_s": night_s,
            "night_megapixels_per_s": megapixels / night_s, "done": summary["done"], "failed": summary["failed"],
-           "rerun_s": rerun_s, "rerun_skipped": again["skipped"], "detect_side": detect_side, "detect_s": detect_s,
+           "rerun_s": rerun_s, "rerun_skipped": again["skipped"], "no_report_s": no_report_s,
+           "no_report_cpu_s": no_report_cpu, "detect_side": detect_side, "detect_s": detect_s,
            "detect_megapixels_per_s": detect_side ** 2 / 1e6 / detect_s, "detect_exit": single.returncode,
            "f_measure_min": min(scores) if scores else float("nan"),
            "detect_f_measure": evaluate(work / "large.zarr", work / "large" / "capture.truth").changes.f_measure}
@@ -283,6 +292,9 @@ def bench_night(data, workdir, *, captures=8, side=1024, detect_side=4096):
           f"{out['night_cpu_s_per_megapixel']:.2f}, detect {out['detect_cpu_s_per_megapixel']:.2f}: the night's rate "
           f"per CPU-second {100 * out['cpu_ratio']:.0f} % of detect's; the night again (nothing to run) "
           f"{rerun_cpu:.1f} CPU-s")
+    _echo(f"survey night without the captures' reports (--no-report): {no_report_s:.1f} s, {no_report_cpu:.1f} CPU-s "
+          f"({megapixels / no_report_s:.2f} MP/s, {100 * megapixels / no_report_s / out['detect_megapixels_per_s']:.0f} % "
+          f"of detect's rate): the reports take {100 * (1 - no_report_cpu / night_cpu):.0f} % of the night's CPU-seconds")
     night, large = out["night_stage_cpu_s_per_megapixel"], out["detect_stage_cpu_s_per_megapixel"]
     if night and large:  # the rest of each command's CPU is outside the tile tasks: products, report, I/O, imports
         stages = sorted((s for s in large if s != "total"), key=lambda s: -abs(night.get(s, 0.0) - large[s]))
