@@ -19,6 +19,7 @@ each while rsmb's tasks run there, its own counts back after the last of them.
 
 import contextlib
 import ctypes
+import json
 import logging
 import os
 import sys
@@ -385,7 +386,8 @@ class _DaskProgress(dask.callbacks.Callback):
 
 def check_scheduler(scheduler):
     """Raise :class:`ops.ParameterError` unless ``scheduler`` names a local
-    scheduler, a ``tcp://host:port`` address, an existing scheduler file, or
+    scheduler, a ``tcp://host:port`` address, a dask scheduler file (JSON with
+    an ``address``), or
     ``slurm`` / ``pbs`` with dask-jobqueue installed and the ``cores`` and
     ``memory`` of a job in dask's jobqueue configuration (checked before any
     work, so a night never starts only to fail when its cluster is made)."""
@@ -400,9 +402,23 @@ def check_scheduler(scheduler):
             return
         raise ParameterError(f"scheduler: expected tcp://HOST:PORT, got {scheduler!r}")
     if isinstance(scheduler, str) and os.path.isfile(scheduler):
+        _check_scheduler_file(scheduler)
         return
     raise ParameterError(f"scheduler: expected one of {', '.join(SCHEDULERS + JOBQUEUE)}, a tcp:// address or "
                          f"a scheduler file, got {scheduler!r}")
+
+
+def _check_scheduler_file(path):
+    """A dask scheduler file: JSON whose ``address`` is a string (what
+    ``dask scheduler --scheduler-file`` writes)."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            info = json.load(f)
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise ParameterError(f"scheduler: {path} is not a dask scheduler file (JSON with an 'address'): "
+                             f"{type(exc).__name__}") from None
+    if not isinstance(info, dict) or not isinstance(info.get("address"), str) or not info["address"]:
+        raise ParameterError(f"scheduler: {path} is not a dask scheduler file (JSON with an 'address')")
 
 
 JOBQUEUE = ("slurm", "pbs")

@@ -267,6 +267,26 @@ def test_survey_bad_option_exits_2_with_one_line(tmp_path, survey_inputs, capsys
     assert os.listdir(tmp_path) == []
 
 
+@pytest.mark.parametrize("content", ["", "{}", '{"address": 7}', "not json", "[1, 2]"],
+                         ids=["empty", "no address", "address not text", "text", "a list"])
+def test_a_file_that_is_no_scheduler_file_exits_2_before_work(tmp_path, small_pair_files, survey_inputs, capsys,
+                                                               no_work, no_survey_work, content):
+    """A ``--scheduler`` path to a file that is not a dask scheduler file (JSON
+    with an ``address``) is bad input for detect and survey alike: one line
+    naming the option, exit 2, no output folder."""
+    _, ref, dist = small_pair_files
+    reference, captures = survey_inputs
+    (tmp_path / "in").mkdir()
+    bad = tmp_path / "in" / "scheduler.json"
+    bad.write_text(content)
+    for args in (["detect", str(ref), str(dist), "-o", str(tmp_path / "o.zarr")],
+                 ["survey", str(reference), "--captures", captures, "-o", str(tmp_path / "night")]):
+        assert main([*args, "--scheduler", str(bad)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--scheduler" in err[0] and "scheduler file" in err[0], err
+        assert os.listdir(tmp_path) == ["in"]
+
+
 def _bad_survey_invocations(tmp_path, monkeypatch):
     """(name, extra arguments, what the message must name, the context it runs
     in) of survey invocations that are bad input; files are made here."""
