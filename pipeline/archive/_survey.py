@@ -468,7 +468,7 @@ def _run_all(ledger, todo, out, references, config, run, stop):
             done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
             for future in done:
                 count += 1
-                _record(ledger, futures[future], future, f"[{count}/{total}]", results)
+                _record(ledger, futures[future], future, f"[{count}/{total}]", results, stop)
     except BaseException:
         driver.shutdown(wait=False, cancel_futures=True)
         stop.abandoned.set()
@@ -488,11 +488,10 @@ def _cancel_queued(ledger, futures, pending, stop, results):
     cancelled = {f for f in pending if f.cancel()}
     for future in cancelled:
         capture, name, run_id, why = futures[future]
-        reason = f"not run: the night was stopped ({stop.why}); it runs next night"
-        ledger.finish(run_id, "failed", f"interrupted before it ran ({stop.why})")
-        results[capture] = CaptureResult(str(capture), "skipped", reason)
-    log.warning("survey: %s: %d queued capture(s) cancelled, %d running get %g s to finish", stop.why,
-                len(cancelled), len(pending) - len(cancelled), stop.grace)
+        results[capture] = _not_run(ledger, run_id, capture, stop)
+    log.warning("survey: %s: %d queued capture(s) cancelled, %d under way: those detecting get %g s to finish, "
+                "those waiting for a slot are not run", stop.why, len(cancelled), len(pending) - len(cancelled),
+                stop.grace)
     return cancelled
 
 
@@ -507,7 +506,14 @@ def _abandon(ledger, futures, pending, stop, results):
     log.warning("survey: %d running capture(s) abandoned", len(pending))
 
 
-def _record(ledger, entry, future, progress, results):
+def _not_run(ledger, run_id, capture, stop):
+    """A capture the stopped night did not start: its attempt closed
+    ``failed`` in the ledger, ``skipped`` in the night (it runs next night)."""
+    ledger.finish(run_id, "failed", f"interrupted before it ran ({stop.why})")
+    return CaptureResult(str(capture), "skipped", f"not run: the night was stopped ({stop.why}); it runs next night")
+
+
+def _record(ledger, entry, future, progress, results, stop):
     """A finished capture's future recorded in the ledger and ``results``:
     ``done`` with its reason, or ``failed`` with its error; a
     :class:`~rsmb.ops.RunError` (every worker gone) ends the night."""
@@ -516,6 +522,9 @@ def _record(ledger, entry, future, progress, results):
         result = future.result()
     except ops.RunError:
         raise  # the night cannot go on (every worker gone): not one capture's fault
+    except _NotStarted:  # waiting for a slot when the night was stopped: as a queued capture
+        results[capture] = _not_run(ledger, run_id, capture, stop)
+        return
     except Exception as exc:  # noqa: BLE001 - one bad capture never stops the night
         results[capture] = _fail(ledger, run_id, capture, exc, None)
         log.error("survey %s %s: failed: %s", progress, name, results[capture].reason)
@@ -551,7 +560,7 @@ def _run_capture(capture, name, out, references, config, runner, report, slots, 
     aside.mkdir(parents=True)
     try:
         folder = out / CAPTURES / name
-        features, read = _build(capture, aside, folder, references, config, runner, report, slots)
+        features, read = _build(capture, aside, folder, references, config, runner, report, slots, stop)
         mask = _read_observation(aside / MASK_NAME)
         _check_unchanged(capture, st)
         if stop.abandoned.is_set():  # the night gave up on it: it places nothing now
@@ -589,12 +598,13 @@ def _check_unchanged(capture, st):
                          f"recorded as done; it runs again next night")
 
 
-def _build(capture, aside, folder, references, config, runner, report, slots):
+def _build(capture, aside, folder, references, config, runner, report, slots, stop):
     """The capture's products in ``aside`` (to become ``folder``): returns its
     change polygons and the reference files read.  The detection holds one of
-    ``slots`` (a semaphore)."""
+    ``slots`` (a semaphore); a night stopped before it got one raises
+    :class:`_NotStarted`."""
     store = aside / "changes.zarr"
-    with slots:
+    with _slot(slots, stop):
         summary = detect(references, capture, store, config=config, runner=runner)
     # the store records where it lives once the folder is in place
     tiles.update_attrs(store, {"summary": {**summary.as_dict(), "output": str(folder / "changes.zarr")}})
@@ -613,6 +623,26 @@ def _build(capture, aside, folder, references, config, runner, report, slots):
 
         write_report(store, aside / "report")
     return features, group.attrs["pairing"].get("read", [])
+
+
+class _NotStarted(Exception):
+    """A capture whose detection had not started when the night was stopped."""
+
+
+@contextlib.contextmanager
+def _slot(slots, stop):
+    """Hold one of ``slots`` (a semaphore) for a detection; raise
+    :class:`_NotStarted` instead when ``stop.event`` is set before it is
+    taken: a capture waiting for a slot is queued, not running."""
+    while not slots.acquire(timeout=0.2):
+        if stop.event.is_set():
+            raise _NotStarted
+    try:
+        if stop.event.is_set():
+            raise _NotStarted
+        yield
+    finally:
+        slots.release()
 
 
 def _write_night(out, result):

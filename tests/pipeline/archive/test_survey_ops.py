@@ -357,6 +357,11 @@ def test_ctrl_c_stops_within_seconds_and_nothing_finished_is_redone(archive, tmp
     assert 1 <= len(done) < 6
     summary = json.loads(stdout)
     assert summary == _summary(out) and summary["done"] == len(done) and (out / "index.html").is_file()
+    # one detection at a time (--parallel 1): at most one was under way, the others waited and were not run
+    status = {Path(c["capture"]).name: (c["status"], c["reason"]) for c in summary["captures"]}
+    assert sum(s == "failed" for s, _ in status.values()) <= 1, status
+    assert all(r.startswith("not run: the night was stopped") for s, r in status.values() if s == "skipped"), status
+    assert sum(s == "skipped" for s, _ in status.values()) >= 6 - len(done) - 1, status
     for name in done:
         assert (out / "captures" / name / "changes.gpkg").is_file(), name
     assert main(_args(references, night / "*.tif", out, "--json")) == 0
@@ -391,3 +396,29 @@ def test_every_worker_lost_ends_the_night_within_the_timeout(archive, tmp_path, 
     assert f"on dask.distributed at {address}" in err
     last = [line for line in err.strip().splitlines() if line.startswith("rsmb:")]
     assert len(last) == 1 and "no dask worker left for 5 s" in last[0], err
+
+
+def test_a_capture_waiting_for_a_detection_slot_is_not_started_once_the_night_stops():
+    """A capture waiting for one of the night's detection slots when the night
+    is stopped raises _NotStarted (it is recorded ``skipped``, as a queued
+    one), within a fraction of a second and without taking the slot; one that
+    gets a slot before the stop runs."""
+    import threading
+
+    from rsmb.pipeline.archive import _survey
+
+    stop, slots = _survey._Stop(), threading.Semaphore(1)
+    with _survey._slot(slots, stop):  # a free slot: taken
+        assert not slots.acquire(blocking=False)
+    assert slots.acquire(blocking=False)  # and given back
+    threading.Timer(0.3, stop.event.set).start()
+    start = time.monotonic()
+    with pytest.raises(_survey._NotStarted):
+        with _survey._slot(slots, stop):  # the only slot is held (above): it waits, then the night stops
+            pass
+    assert time.monotonic() - start < 1.0
+    slots.release()
+    with pytest.raises(_survey._NotStarted):  # a slot free after the stop is not taken either
+        with _survey._slot(slots, stop):
+            pass
+    assert slots.acquire(blocking=False)
