@@ -49,6 +49,10 @@ def _tile_means(values, row_edges, col_edges):
     return out
 
 
+#: The store arrays :func:`evaluate` reads.
+_READ = ("change_mask", "change_mask_reference", "registered", "trajectory", "gain")
+
+
 def evaluate(store, truth_dir):
     """Metrics of a ``rsmb detect`` store against ``rsmb synth`` truth.
 
@@ -62,7 +66,7 @@ def evaluate(store, truth_dir):
         capture, outside true changes, 0..255 units; needs the capture, so it is
         computed when the store's input path still exists).
     """
-    group = tiles.open_result_store(store)
+    group = tiles.open_result_store(store, required=_READ)
     truth = read_truth(truth_dir)
     mask = group["change_mask"][:] == 1  # 255, no evidence, is not a change
     if mask.shape != truth["change_mask"].shape:

@@ -17,6 +17,7 @@ import numpy as np
 from rsmb import ops
 from rsmb import tiles
 from rsmb.ops import InputError
+from rsmb.ops._errors import one_line
 
 __all__ = ["FORMATS", "PairPaths", "synth", "write_pair", "read_truth", "DEMO_GEO"]
 
@@ -130,10 +131,17 @@ def read_truth(truth_dir):
     for name in need:
         if not (base / name).is_file():
             raise InputError(f"{base / name}: truth file missing (expected the layout written by rsmb synth)")
-    return {
-        "change_mask": cv2.imread(str(base / "change_mask.png"), cv2.IMREAD_UNCHANGED) > 0,
-        "change_mask_reference": cv2.imread(str(base / "change_mask_reference.png"), cv2.IMREAD_UNCHANGED) > 0,
-        "trajectory": np.loadtxt(base / "trajectory.csv", delimiter=",", skiprows=1, ndmin=2),
-        "gain": np.load(base / "gain.npy"),
-        "info": json.loads((base / "truth.json").read_text()),
-    }
+    out = {}
+    for key, name, read in (
+            ("change_mask", "change_mask.png", lambda p: cv2.imread(str(p), cv2.IMREAD_UNCHANGED) > 0),
+            ("change_mask_reference", "change_mask_reference.png",
+             lambda p: cv2.imread(str(p), cv2.IMREAD_UNCHANGED) > 0),
+            ("trajectory", "trajectory.csv", lambda p: np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)),
+            ("gain", "gain.npy", np.load),
+            ("info", "truth.json", lambda p: json.loads(p.read_text()))):
+        try:
+            out[key] = read(base / name)
+        except Exception as exc:  # noqa: BLE001 - cv2, numpy and json raise many types for a damaged file
+            raise InputError(f"{base / name}: unreadable truth file ({type(exc).__name__}: {one_line(exc)})") \
+                from None
+    return out

@@ -228,8 +228,15 @@ def update_attrs(path: str | os.PathLike, updates: dict[str, Any]) -> None:
         _consolidate(Path(path))
 
 
-def open_result_store(path: str | os.PathLike):
+def open_result_store(path: str | os.PathLike, required=()):
     """Open a finished output store read-only.
+
+    Parameters
+    ----------
+    path : str or path-like
+    required : sequence of str
+        Arrays a caller reads: when given, the store must hold them and the
+        ``tile_grid`` attribute every ``rsmb detect`` store has.
 
     Returns
     -------
@@ -238,7 +245,8 @@ def open_result_store(path: str | os.PathLike):
     Raises
     ------
     InputError
-        If ``path`` does not exist or is not a zarr group.
+        If ``path`` does not exist or is not a zarr group, or (with
+        ``required``) is not an rsmb detect store with those arrays.
     """
     import zarr
 
@@ -256,4 +264,9 @@ def open_result_store(path: str | os.PathLike):
         ) from exc
     if not isinstance(node, zarr.Group):
         raise InputError(f"{store}: is a zarr array, expected a zarr group")
+    missing = [name for name in required if name not in node]
+    if missing:
+        raise InputError(f"{store}: not an rsmb detect store (array(s) {', '.join(missing)} missing)")
+    if required and "tile_grid" not in node.attrs:
+        raise InputError(f"{store}: not an rsmb detect store (no 'tile_grid' attribute)")
     return node

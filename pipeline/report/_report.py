@@ -84,9 +84,8 @@ def write_report(store, out_dir=None, *, max_pixels=DEFAULT_MAX_PIXELS, overwrit
     if isinstance(max_pixels, bool) or not isinstance(max_pixels, (int, np.integer)) or max_pixels < 1:
         raise ParameterError(f"max_pixels: expected a positive integer, got {max_pixels!r}")
     store = Path(store)
-    group = tiles.open_result_store(store)
+    group = tiles.open_result_store(store, required=_REQUIRED)
     attrs = group.attrs.asdict()
-    _check_store(group, attrs, store)
     out = _prepare_out_dir(store, out_dir, overwrite)
     shape = tuple(group["change_mask"].shape)
     factor = downsample_factor(shape, int(max_pixels))
@@ -100,14 +99,6 @@ def write_report(store, out_dir=None, *, max_pixels=DEFAULT_MAX_PIXELS, overwrit
 
 
 # --------------------------------------------------------------------------- checks and output directory
-
-
-def _check_store(group, attrs, store):
-    missing = [name for name in _REQUIRED if name not in group]
-    if missing:
-        raise InputError(f"{store}: not an rsmb detect store (array(s) {', '.join(missing)} missing)")
-    if "tile_grid" not in attrs:
-        raise InputError(f"{store}: not an rsmb detect store (no 'tile_grid' attribute)")
 
 
 def _prepare_out_dir(store, out_dir, overwrite):

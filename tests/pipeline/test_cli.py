@@ -16,7 +16,7 @@ def _invoke(args):
     return CliRunner().invoke(cli, args, catch_exceptions=False)
 
 
-def test_synth_detect_evaluate(tmp_path):
+def test_synth_detect_evaluate(tmp_path, capsys):
     pair_dir = tmp_path / "pair"
     result = _invoke(["synth", str(pair_dir), "--size", "256,256", "--changes", "6", "--seed", "3"])
     assert result.exit_code == 0, result.output
@@ -37,6 +37,29 @@ def test_synth_detect_evaluate(tmp_path):
     metrics = json.loads(result.output)
     assert metrics["changes"]["f_measure"] > 0.9
     assert metrics["gain"]["max_relative_error"] < 0.03
+    _evaluate_refuses_what_it_cannot_read(tmp_path, store, pair_dir, capsys)
+
+
+def _evaluate_refuses_what_it_cannot_read(tmp_path, store, pair_dir, capsys):
+    """A zarr group that is not a detect store, and truth folders with one
+    damaged file each: one line naming the path, exit 2."""
+    import shutil
+
+    import zarr
+
+    other = tmp_path / "other.zarr"
+    zarr.open_group(str(other), mode="w").create_array("x", shape=(4,), dtype="uint8")
+    cases = [([str(other), str(pair_dir)], f"{other}: not an rsmb detect store")]
+    for name, content in (("truth.json", b"{not json"), ("change_mask.png", b""), ("gain.npy", b"\x93NUMPY")):
+        bad = tmp_path / f"bad_{name}"
+        shutil.copytree(pair_dir / "truth", bad)
+        (bad / name).write_bytes(content)
+        cases.append(([str(store), str(bad)], f"{bad / name}: unreadable truth file"))
+    capsys.readouterr()
+    for args, named in cases:
+        assert main(["evaluate", *args]) == 2, args
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and named in lines[0], (args, lines)
 
 
 def test_dims_open_with_xarray(tmp_path, small_pair_files):
