@@ -28,6 +28,9 @@ page is :mod:`._report_html`.
 """
 
 import logging
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -90,12 +93,23 @@ def write_report(store, out_dir=None, *, max_pixels=DEFAULT_MAX_PIXELS, overwrit
     shape = tuple(group["change_mask"].shape)
     factor = downsample_factor(shape, int(max_pixels))
     log.info("report %s: %d x %d px, downsampled by %d", out, shape[0], shape[1], factor)
-
-    figures, score_factor = write_figures(group, attrs, out, factor)
-    page = html_page(store, attrs, group, figures, factor, score_factor)
-    index = out / "index.html"
-    index.write_text(page, encoding="utf-8")
-    return index
+    # drawn aside and moved in when complete: a report that fails (a damaged
+    # store, a full disk) leaves the folder as it was, an earlier report included
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+    try:
+        figures, score_factor = write_figures(group, attrs, stage, factor)
+        page = html_page(store, attrs, group, figures, factor, score_factor)
+        (stage / "index.html").write_text(page, encoding="utf-8")
+        out.mkdir(exist_ok=True)
+        if overwrite:
+            for name in FIGURES + _OLD_FIGURES + ("index.html",):
+                (out / name).unlink(missing_ok=True)
+        for path in stage.iterdir():
+            os.replace(path, out / path.name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    return out / "index.html"
 
 
 # --------------------------------------------------------------------------- checks and output directory
@@ -108,8 +122,4 @@ def _prepare_out_dir(store, out_dir, overwrite):
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise InputError(f"{out}: report directory exists and is not empty; pass --overwrite to replace it")
     tiles.check_writable(out / "index.html")
-    out.mkdir(parents=True, exist_ok=True)
-    if overwrite:
-        for name in FIGURES + _OLD_FIGURES + ("index.html",):
-            (out / name).unlink(missing_ok=True)
     return out

@@ -111,6 +111,27 @@ def test_existing_directory_refused(store, tmp_path):
     assert not (out / "trajectory.svg").exists()  # replaced by trajectory.png, not left to look current
 
 
+def test_a_report_that_fails_leaves_the_folder_as_it_was(store, tmp_path):
+    """A store with a damaged chunk: the report fails, and the folder keeps
+    the earlier report byte for byte (a new folder is not made), with nothing
+    half-written beside it."""
+    import shutil
+
+    damaged = tmp_path / "damaged.zarr"
+    shutil.copytree(store, damaged)
+    chunk = next(p for p in sorted((damaged / "change_score").rglob("*")) if p.is_file() and p.name != "zarr.json")
+    chunk.write_bytes(b"\x00" * 64)
+    out = tmp_path / "rep"
+    write_report(store, out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    with pytest.raises(Exception):
+        write_report(damaged, out, overwrite=True)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    with pytest.raises(Exception):
+        write_report(damaged, tmp_path / "new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["damaged.zarr", "rep"]
+
+
 def test_empty_existing_directory_is_used(store, tmp_path):
     (tmp_path / "rep").mkdir()
     assert write_report(store, tmp_path / "rep").is_file()
