@@ -50,6 +50,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from rsmb import ops
+from rsmb import tiles
 from rsmb.ops import InputError, RSMBError
 
 from ._workflow_steps import _INPUTS, _NAMED, STEPS, DetectOptions, SurveyStep, Workflow, _File, _MethodOptions
@@ -197,12 +198,18 @@ def check_inputs(workflow):
             for path in value if isinstance(value, list) else [value]:
                 if not made(path) and not path.exists():
                     raise InputError(f"{where}: {key}: {path} does not exist")
-        if kind == "survey":
-            try:
+        try:
+            if kind == "survey":
                 _check_survey(model, {p for p in model.references if made(p)})
-            except InputError as exc:
-                raise InputError(f"{where}: {exc}") from None
+            if kind == "detect":
+                _check_detect(model, made, workflow.overwrite)
+        except InputError as exc:
+            raise InputError(f"{where}: {exc}") from None
         written.update(_writes(kind, model))
+    try:
+        tiles.check_writable(workflow.summary)
+    except InputError as exc:
+        raise InputError(f"{workflow.path}: summary: {exc}") from None
     if not (workflow.scheduler in ("threads", "processes", "synchronous") or workflow.scheduler.startswith("tcp://")):
         from .._scheduler import check_scheduler
 
@@ -210,6 +217,16 @@ def check_inputs(workflow):
             check_scheduler(workflow.scheduler)
         except ops.ParameterError as exc:
             raise InputError(f"{workflow.path}: {exc}") from None
+
+
+def _check_detect(model, made, overwrite):
+    """A detect step's inputs on disk open as images (their headers read), and
+    its output is free unless the workflow overwrites or the step resumes."""
+    for path in (model.reference, model.distorted):
+        if not made(path):
+            tiles.probe_header(path)
+    if os.path.lexists(model.output) and not made(model.output) and not (overwrite or model.resume):
+        raise InputError(f"output: {model.output} exists; set overwrite: true (or resume: true) to use it")
 
 
 class StepFailed(RSMBError):

@@ -1,7 +1,6 @@
 """Workflow files: validation, and a small nightly run end to end."""
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -231,6 +230,29 @@ def test_a_survey_step_is_checked_before_any_step_runs(tmp_path, capsys):
     path = _write(tmp_path, {"steps": [{"survey": survey}]})
     assert main(["run", str(path), "--check"]) == 0
     assert "step 1 survey" in capsys.readouterr().out and not (tmp_path / "night").exists()
+
+
+def test_a_detect_step_and_the_summary_are_checked_before_any_step_runs(tmp_path, capsys):
+    """A detect step's input that is no image, its output already there
+    (without overwrite or resume), and a summary that cannot be written (its
+    folder is a file) are bad input: one line, exit 2, before the first step
+    runs."""
+    (tmp_path / "text.tif").write_text("not an image")
+    (tmp_path / "taken.zarr").mkdir()
+    first = {"synth": {"out_dir": "pair", "size": 64, "changes": 0}}
+    detect = {"reference": "pair/reference.png", "distorted": "pair/distorted.png", "output": "o.zarr"}
+    cases = [({"steps": [first, {"detect": {**detect, "reference": "text.tif"}}]}, "step 2 (detect): " +
+              str(tmp_path / "text.tif")),
+             ({"steps": [first, {"detect": {**detect, "output": "taken.zarr"}}]}, "step 2 (detect): output: "),
+             ({"summary": "text.tif/s.json", "steps": [first]}, "summary: ")]
+    for flow, words in cases:
+        path = _write(tmp_path, flow)
+        assert main(["-q", "run", str(path)]) == 2, flow
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], err
+        assert not (tmp_path / "pair").exists()
+    path = _write(tmp_path, {"overwrite": True, "steps": [first, {"detect": {**detect, "output": "taken.zarr"}}]})
+    assert main(["run", str(path), "--check"]) == 0  # overwrite: the output is the step's to replace
 
 
 def test_a_jobqueue_scheduler_is_a_name_not_a_file(tmp_path, capsys):
