@@ -1,6 +1,7 @@
 """Workflow files: validation, and a small nightly run end to end."""
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
