@@ -87,9 +87,11 @@ def _print_summary(summary, as_json):
     if as_json:
         click.echo(json.dumps(summary.as_dict(), indent=2))
         return
+    gain = "n/a (no tile had data)" if summary.gain_min is None else \
+        f"{summary.gain_min:.3f}..{summary.gain_max:.3f}"
     click.echo(f"{summary.output}: {summary.changed_pixels} changed px in {summary.components} "
-               f"component(s), threshold {summary.threshold:.3f}, gain {summary.gain_min:.3f}.."
-               f"{summary.gain_max:.3f}, {summary.tiles[0]}x{summary.tiles[1]} tiles, "
+               f"component(s), threshold {summary.threshold:.3f}, gain {gain}, "
+               f"{summary.tiles[0]}x{summary.tiles[1]} tiles, "
                f"{summary.timings['total_s']:.1f} s ({summary.megapixels_per_s:.2f} MP/s)")
 
 

@@ -296,6 +296,10 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff, previews)
         write_products(final, geotiff, geo, overwrite=overwrite)
     log.info("wrote %s: %d changed px (threshold %.3f), %.2f MP/s", final, result.changed_pixels, result.threshold,
              result.megapixels_per_s)
+    if result.no_evidence >= NO_EVIDENCE_WARNING:
+        log.warning("%s: no evidence on %.0f %% of the capture's pixels (its change mask says 255 there): too little "
+                    "of it could be registered (too small, too little valid, or off the reference)", final,
+                    100 * result.no_evidence)
 
 
 class _Beside:
@@ -498,6 +502,18 @@ def _stages(runner, group, run, plan, resume, timings, previews):
     return plan, run, found
 
 
+#: Share of a capture's pixels without evidence from which detect warns that
+#: it found almost nothing to register.
+NO_EVIDENCE_WARNING = 0.9
+
+
+def _finite_extreme(extreme, values):
+    """``extreme`` (np.nanmin or np.nanmax) of ``values`` as a float, None
+    when none is finite (no tile had data to fit a gain: JSON has no NaN)."""
+    values = np.asarray(values, np.float64)
+    return float(extreme(values)) if np.isfinite(values).any() else None
+
+
 def _result(group, run, plan, found, timings):
     """The run's :class:`DetectResult` from what its stages found."""
     shape, grid, pixels = plan.shape, plan.grid, float(plan.shape[0] * plan.shape[1])
@@ -506,7 +522,7 @@ def _result(group, run, plan, found, timings):
         output=str(plan.output), shape=list(shape), tiles=list(grid.grid_shape), tile_size=grid.tile,
         halo=grid.halo, threshold=found.threshold, changed_pixels=int(found.changed),
         changed_fraction=found.changed / pixels, components=found.components,
-        gain_min=float(np.nanmin(found.gains)), gain_max=float(np.nanmax(found.gains)),
+        gain_min=_finite_extreme(np.nanmin, found.gains), gain_max=_finite_extreme(np.nanmax, found.gains),
         resolved_tiles=[list(t) for t in found.resolve],
         tile_agreement_px_max=float(np.nanmax(found.agree)) if np.isfinite(found.agree).any() else None,
         tasks_per_tile=found.tasks_per_tile, megapixels_per_s=pixels / 1e6 / timings["total_s"],

@@ -78,8 +78,9 @@ class DetectResult:
     changed_fraction : float
     components : int
         Changes kept (connected components).
-    gain_min, gain_max : float
-        Range of the per-tile illumination gain.
+    gain_min, gain_max : float or None
+        Range of the per-tile illumination gain; None when no tile had data
+        to fit one.
     resolved_tiles : list
         Tiles re-solved around their band's path.
     tile_agreement_px_max : float or None
@@ -122,8 +123,8 @@ class DetectResult:
     changed_pixels: int
     changed_fraction: float
     components: int
-    gain_min: float
-    gain_max: float
+    gain_min: float | None
+    gain_max: float | None
     resolved_tiles: list
     tile_agreement_px_max: float | None
     tasks_per_tile: float

@@ -169,3 +169,24 @@ def test_help_texts():
     for command in ([], ["detect"], ["synth"], ["evaluate"]):
         result = _invoke(command + ["--help"])
         assert result.exit_code == 0 and "Usage" in result.output
+
+
+def test_a_capture_with_nothing_to_register_says_so(tmp_path, capsys, caplog):
+    """An 8 x 8 pair: no tile has data to fit a gain, so the summary's gain is
+    null in strict JSON (never NaN) and "n/a" in the text line, and the log
+    warns that there is no evidence almost anywhere."""
+    rng = np.random.default_rng(1)
+    image = rng.random((8, 8)).astype(np.float32)
+    np.save(tmp_path / "r.npy", image)
+    np.save(tmp_path / "d.npy", image)
+    assert main(["detect", str(tmp_path / "r.npy"), str(tmp_path / "d.npy"), "-o", str(tmp_path / "o.zarr"),
+                 "--json"]) == 0
+
+    def no_nan(constant):
+        raise ValueError(f"not JSON: {constant}")
+
+    summary = json.loads(capsys.readouterr().out, parse_constant=no_nan)
+    assert summary["gain_min"] is None and summary["gain_max"] is None and summary["no_evidence"] == 1.0
+    assert "no evidence on 100 % of the capture's pixels" in caplog.text
+    assert main(["-q", "detect", str(tmp_path / "r.npy"), str(tmp_path / "d.npy"), "-o", str(tmp_path / "p.zarr")]) == 0
+    assert "gain n/a" in capsys.readouterr().out
