@@ -398,6 +398,7 @@ def _night(ledger, found, out, references, night, config, settle, run, stop):
         elif what == "fail":
             exc, key = detail
             results[capture] = _fail(ledger, ledger.start(str(capture), key, night=night), capture, exc, 0.0)
+            log.error("survey: %s: failed before it ran: %s", name, results[capture].reason)
         elif what == "skip":
             decision = detail[1]
             previous = decision.previous.outputs

@@ -446,3 +446,16 @@ def test_bad_invocations_and_an_empty_night(tmp_path, capsys):
     captured = capsys.readouterr()
     assert json.loads(captured.out) == {"captures": [], "done": 0, "skipped": 0, "failed": 0}
     assert "a night of 0 captures" in captured.err
+
+
+def test_a_capture_that_fails_before_it_runs_is_logged(tmp_path, caplog):
+    """A capture the night cannot open (text named .tif) fails before any
+    detection, and the log says so with an ERROR line naming it, as it does
+    for a capture that fails while it runs."""
+    references = write_reference(tmp_path / "reference", _scene())
+    (tmp_path / "incoming").mkdir()
+    (tmp_path / "incoming" / "notes.tif").write_text("not an image")
+    assert main(["survey", *map(str, references), "--captures", str(tmp_path / "incoming" / "*.tif"), "-o",
+                 str(tmp_path / "out"), "--no-report", "--settle", "0"]) == 3
+    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    assert any("notes.tif: failed before it ran" in m for m in errors), errors
