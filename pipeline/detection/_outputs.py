@@ -25,8 +25,14 @@ MASK_NODATA = ops.NO_EVIDENCE
 
 def _check_outputs(output, geotiff, overwrite):
     """Refuse outputs that cannot be written or that exist without
-    ``overwrite``, before any work starts."""
+    ``overwrite``, before any work starts (an overwrite a killed run left
+    half-done repaired first)."""
     tiles.repair_interrupted_overwrite(output)
+    check_outputs(output, geotiff, overwrite)
+
+
+def check_outputs(output, geotiff, overwrite):
+    """:func:`_check_outputs`' rules, touching nothing (``rsmb run --check``)."""
     if os.path.lexists(output) and not overwrite:
         raise InputError(f"{output}: output exists; pass --overwrite to replace it")
     tiles.check_writable(output)

@@ -175,8 +175,6 @@ def _writes(kind, model):
 def _check_survey(model, written):
     """A survey step's references (those on disk: georeferenced) and output
     folder (new, empty or a survey's), as ``rsmb survey`` checks them."""
-    from rsmb import tiles
-
     from ..archive._survey import check_output
 
     for path in model.references:
@@ -220,13 +218,18 @@ def check_inputs(workflow):
 
 
 def _check_detect(model, made, overwrite):
-    """A detect step's inputs on disk open as images (their headers read), and
-    its output is free unless the workflow overwrites or the step resumes."""
+    """A detect step's inputs on disk open as images (their headers read; a
+    reference folder's files), and its outputs pass ``rsmb detect``'s own
+    rules (:func:`check_outputs`), but for a finished store it resumes."""
+    from ..detection._outputs import check_outputs
+
     for path in (model.reference, model.distorted):
         if not made(path):
-            tiles.probe_header(path)
-    if os.path.lexists(model.output) and not made(model.output) and not (overwrite or model.resume):
-        raise InputError(f"output: {model.output} exists; set overwrite: true (or resume: true) to use it")
+            for file in tiles.expand_references([path]) if path == model.reference else [path]:
+                tiles.probe_header(file)
+    if made(model.output) or (model.resume and tiles.is_complete_store(model.output)):
+        return
+    check_outputs(model.output, None if model.geotiff is None or made(model.geotiff) else model.geotiff, overwrite)
 
 
 class StepFailed(RSMBError):

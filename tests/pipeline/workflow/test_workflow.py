@@ -235,16 +235,21 @@ def test_a_survey_step_is_checked_before_any_step_runs(tmp_path, capsys):
 
 def test_a_detect_step_and_the_summary_are_checked_before_any_step_runs(tmp_path, capsys):
     """A detect step's input that is no image, its output already there
-    (without overwrite or resume), and a summary that cannot be written (its
-    folder is a file) are bad input: one line, exit 2, before the first step
-    runs."""
+    (without overwrite, or with resume of what is no finished store), its
+    GeoTIFFs already there, and a summary that cannot be written (its folder
+    is a file) are bad input: one line, exit 2, before the first step runs.
+    A reference folder (a mosaic's files) is an input as detect takes it."""
     (tmp_path / "text.tif").write_text("not an image")
     (tmp_path / "taken.zarr").mkdir()
+    (tmp_path / "tifs").mkdir()
+    (tmp_path / "tifs" / "change_mask_reference.tif").write_bytes(b"an earlier run's")
     first = {"synth": {"out_dir": "pair", "size": 64, "changes": 0}}
     detect = {"reference": "pair/reference.png", "distorted": "pair/distorted.png", "output": "o.zarr"}
     cases = [({"steps": [first, {"detect": {**detect, "reference": "text.tif"}}]}, "step 2 (detect): " +
               str(tmp_path / "text.tif")),
-             ({"steps": [first, {"detect": {**detect, "output": "taken.zarr"}}]}, "step 2 (detect): output: "),
+             ({"steps": [first, {"detect": {**detect, "output": "taken.zarr"}}]}, "output exists"),
+             ({"steps": [first, {"detect": {**detect, "output": "taken.zarr", "resume": True}}]}, "output exists"),
+             ({"steps": [first, {"detect": {**detect, "geotiff": "tifs"}}]}, "change_mask_reference.tif: exists"),
              ({"summary": "text.tif/s.json", "steps": [first]}, "summary: ")]
     for flow, words in cases:
         path = _write(tmp_path, flow)
@@ -254,6 +259,10 @@ def test_a_detect_step_and_the_summary_are_checked_before_any_step_runs(tmp_path
         assert not (tmp_path / "pair").exists()
     path = _write(tmp_path, {"overwrite": True, "steps": [first, {"detect": {**detect, "output": "taken.zarr"}}]})
     assert main(["run", str(path), "--check"]) == 0  # overwrite: the output is the step's to replace
+    _survey_archive(tmp_path / "archive")
+    path = _write(tmp_path, {"steps": [{"detect": {"reference": "archive/reference", "distorted":
+                                                   "archive/incoming/cap0.tif", "output": "m.zarr"}}]})
+    assert main(["run", str(path), "--check"]) == 0  # a folder of reference files: a mosaic
 
 
 def test_a_jobqueue_scheduler_is_a_name_not_a_file(tmp_path, capsys):
