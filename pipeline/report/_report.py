@@ -30,7 +30,7 @@ page is :mod:`._report_html`.
 import logging
 import os
 import shutil
-import tempfile
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -95,24 +95,37 @@ def write_report(store, out_dir=None, *, max_pixels=DEFAULT_MAX_PIXELS, overwrit
     log.info("report %s: %d x %d px, downsampled by %d", out, shape[0], shape[1], factor)
     # drawn aside and moved in when complete: a report that fails (a damaged
     # store, a full disk) leaves the folder as it was, an earlier report included
-    out.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+    stage = _stage(out)
     try:
         figures, score_factor = write_figures(group, attrs, stage, factor)
         page = html_page(store, attrs, group, figures, factor, score_factor)
         (stage / "index.html").write_text(page, encoding="utf-8")
-        out.mkdir(exist_ok=True)
-        if overwrite:
-            for name in FIGURES + _OLD_FIGURES + ("index.html",):
-                (out / name).unlink(missing_ok=True)
-        for path in stage.iterdir():
-            os.replace(path, out / path.name)
+        if stage.parent == out:  # an existing folder: each file replaced, on the folder's own file system
+            written = {path.name for path in stage.iterdir()}
+            for name in written:
+                os.replace(stage / name, out / name)
+            for name in FIGURES + _OLD_FIGURES + ("index.html",):  # an earlier report's others
+                if name not in written:
+                    (out / name).unlink(missing_ok=True)
+        else:
+            os.replace(stage, out)  # a new folder, renamed into place whole
     finally:
         shutil.rmtree(stage, ignore_errors=True)
     return out / "index.html"
 
 
 # --------------------------------------------------------------------------- checks and output directory
+
+
+def _stage(out):
+    """A new folder to draw the report ``out`` in: inside ``out`` when it
+    exists (its files then move on that folder's file system, a mount or a
+    link's target included), else beside it (then renamed to ``out``)."""
+    parent = out if out.is_dir() else out.parent
+    parent.mkdir(parents=True, exist_ok=True)
+    stage = parent / f".{out.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.partial"
+    stage.mkdir()
+    return stage
 
 
 def _prepare_out_dir(store, out_dir, overwrite):
