@@ -131,11 +131,16 @@ def read_truth(truth_dir):
     for name in need:
         if not (base / name).is_file():
             raise InputError(f"{base / name}: truth file missing (expected the layout written by rsmb synth)")
+    def mask(path):
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise ValueError("not a readable PNG")
+        return image > 0
+
     out = {}
     for key, name, read in (
-            ("change_mask", "change_mask.png", lambda p: cv2.imread(str(p), cv2.IMREAD_UNCHANGED) > 0),
-            ("change_mask_reference", "change_mask_reference.png",
-             lambda p: cv2.imread(str(p), cv2.IMREAD_UNCHANGED) > 0),
+            ("change_mask", "change_mask.png", mask),
+            ("change_mask_reference", "change_mask_reference.png", mask),
             ("trajectory", "trajectory.csv", lambda p: np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)),
             ("gain", "gain.npy", np.load),
             ("info", "truth.json", lambda p: json.loads(p.read_text()))):

@@ -228,7 +228,7 @@ def update_attrs(path: str | os.PathLike, updates: dict[str, Any]) -> None:
         _consolidate(Path(path))
 
 
-def open_result_store(path: str | os.PathLike, required=()):
+def open_result_store(path: str | os.PathLike, required: tuple[str, ...] = ()):
     """Open a finished output store read-only.
 
     Parameters

@@ -244,6 +244,7 @@ def bench_night(data, workdir, *, captures=8, side=1024, detect_side=4096):
                                       changes=10 * (detect_side // side) ** 2, exposure=32.0),
                           hand_cut=work / "large" / "pair")
     megapixels = captures * side * side / 1e6
+
     def night_cmd(out, *extra):
         return ["survey", *references, "--captures", work / "incoming" / "*.tif", "-o", out, "--json", "--settle", "0",
                 *extra]
