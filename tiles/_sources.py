@@ -144,6 +144,7 @@ class RasterioSource(_Source):
 
     def probe(self) -> tuple[tuple[int, int], GeoInfo]:
         with self._open() as ds:
+            _check_tiff_length(ds, self.path)
             return (ds.height, ds.width), _rasterio_geo(ds)
 
     def read(
@@ -167,6 +168,23 @@ class RasterioSource(_Source):
                 nodatavals=list(ds.nodatavals),
                 name=self.path,
             )
+
+
+def _check_tiff_length(ds, path) -> None:
+    """Raise :class:`InputError` when a TIFF's last block of some band ends
+    beyond the file: a file cut short (still being copied, or a copy that
+    broke off) whose header opens.  Read from the header's block offsets and
+    sizes only; other formats pass."""
+    if ds.driver != "GTiff":
+        return
+    length = os.path.getsize(path)
+    for bidx, (bh, bw) in zip(ds.indexes, ds.block_shapes):
+        x, y = -(-ds.width // bw) - 1, -(-ds.height // bh) - 1
+        offset = ds.get_tag_item(f"BLOCK_OFFSET_{x}_{y}", "TIFF", bidx=bidx)
+        size = ds.get_tag_item(f"BLOCK_SIZE_{x}_{y}", "TIFF", bidx=bidx)
+        if offset and size and int(offset) + int(size) > length:
+            raise InputError(f"{path}: cut short: its data ends at byte {int(offset) + int(size)} of a "
+                             f"{length}-byte file (still being copied?)")
 
 
 def _rasterio_alpha_index(ds) -> int | None:

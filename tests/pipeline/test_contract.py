@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -285,6 +286,22 @@ def test_a_file_that_is_no_scheduler_file_exits_2_before_work(tmp_path, small_pa
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "--scheduler" in err[0] and "scheduler file" in err[0], err
         assert os.listdir(tmp_path) == ["in"]
+
+
+def test_a_reference_still_being_copied_stops_the_survey_before_work(tmp_path, survey_inputs, capsys,
+                                                                     no_survey_work):
+    """A reference GeoTIFF cut short (its header opens, its data ends early: a
+    copy still running) is bad input of the night, not a failure of each
+    capture: exit 2, one line naming it, no output folder."""
+    reference, captures = survey_inputs
+    (tmp_path / "in").mkdir()
+    cut = tmp_path / "in" / "mosaic.tif"
+    data = Path(reference).read_bytes()
+    cut.write_bytes(data[:len(data) // 2])
+    assert main(["survey", str(cut), "--captures", captures, "-o", str(tmp_path / "night")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(cut) in err[0] and "cut short" in err[0], err
+    assert os.listdir(tmp_path) == ["in"]
 
 
 def _bad_survey_invocations(tmp_path, monkeypatch):

@@ -17,6 +17,7 @@ from rsmb.tiles import (
     GeoInfo,
     as_float01,
     check_same_shape,
+    probe_header,
     probe_image,
     read_image,
     read_window,
@@ -323,16 +324,38 @@ def _truncated(path, keep):
     return path
 
 
-@pytest.mark.parametrize("read", [read_image, lambda p: read_window(p, slice(400, 600), slice(None))])
-def test_truncated_geotiff_error_names_gdal_cause(tmp_path, read):
+def _damaged(path):
+    """A tiled 3-band GeoTIFF whose second half is overwritten with zeros: its
+    header and length intact, its later blocks undecodable."""
+    path = _truncated(path, lambda size: size)
+    size = path.stat().st_size
+    with open(path, "r+b") as fh:
+        fh.seek(size // 2)
+        fh.write(bytes(size - size // 2))
+    return path
+
+
+@pytest.mark.parametrize("call", [probe_header, probe_image, read_image])
+def test_a_geotiff_cut_short_is_refused_from_its_header(tmp_path, call):
+    """A GeoTIFF whose header opens but whose data the file no longer holds
+    (still being copied): refused by its block offsets, before any pixel is
+    read, one line saying so."""
     path = _truncated(tmp_path / "cut.tif", lambda size: size // 2)
+    with pytest.raises(InputError, match="cut short") as exc_info:
+        call(path)
+    _assert_one_line(exc_info, path)
+
+
+@pytest.mark.parametrize("read", [read_image, lambda p: read_window(p, slice(400, 600), slice(None))])
+def test_damaged_geotiff_error_names_gdal_cause(tmp_path, read):
+    path = _damaged(tmp_path / "bad.tif")
     assert probe_image(path).shape == (600, 700)  # the header is intact
     with pytest.raises(InputError, match="cannot read image") as exc_info:
         read(path)
     _assert_one_line(exc_info, path)
     message = str(exc_info.value)
     assert "See previous exception" not in message
-    assert "TIFF" in message  # GDAL's (libtiff's) own description of the failure
+    assert "ZIPDecode" in message  # GDAL's (libtiff's) own description of the failure
 
 
 def test_truncated_header_error_names_gdal_cause(tmp_path):
@@ -345,7 +368,7 @@ def test_truncated_header_error_names_gdal_cause(tmp_path):
 
 
 def test_gdal_info_lines_do_not_leak_but_stay_at_debug(tmp_path, caplog):
-    path = _truncated(tmp_path / "cut.tif", lambda size: size // 2)
+    path = _damaged(tmp_path / "bad.tif")
 
     def gdal_records():
         return [r for r in caplog.records if r.name.startswith("rasterio._e")]

@@ -103,7 +103,7 @@ def test_bad_captures_fail_and_the_rest_finish(first_night, capsys):
     assert "does not overlap" in status["elsewhere.tif"]["reason"]
     assert "not georeferenced" in status["nogeo.tif"]["reason"]
     assert "constant" in status["flat.tif"]["reason"]
-    assert "cannot read" in status["truncated.tif"]["reason"]
+    assert "cut short" in status["truncated.tif"]["reason"]
     assert not (out / "captures" / "flight2").exists() and not (out / ".partial").exists()
 
 
