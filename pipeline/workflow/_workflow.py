@@ -177,8 +177,9 @@ def _check_survey(model, written):
     folder (new, empty or a survey's), as ``rsmb survey`` checks them."""
     from ..archive._survey import check_output
 
-    for path in model.references:
-        if path not in written and not tiles.is_georeferenced(tiles.probe_header(path)[1]):
+    # a folder of reference files stands for its files, as survey reads it
+    for path in tiles.expand_references([p for p in model.references if p not in written]):
+        if not tiles.is_georeferenced(tiles.probe_header(path)[1]):
             raise InputError(f"references: {path}: not georeferenced (a survey pairs captures by footprint)")
     check_output(model.output, option="output")
 
@@ -223,10 +224,10 @@ def _check_detect(model, made, overwrite):
     rules (:func:`check_outputs`), but for a finished store it resumes."""
     from ..detection._outputs import check_outputs
 
-    for path in (model.reference, model.distorted):
-        if not made(path):
-            for file in tiles.expand_references([path]) if path == model.reference else [path]:
-                tiles.probe_header(file)
+    for path in tiles.expand_references([] if made(model.reference) else [model.reference]):
+        tiles.probe_header(path)
+    if not made(model.distorted):
+        tiles.probe_header(model.distorted)
     if made(model.output) or (model.resume and tiles.is_complete_store(model.output)):
         return
     check_outputs(model.output, None if model.geotiff is None or made(model.geotiff) else model.geotiff, overwrite)

@@ -231,6 +231,8 @@ def test_a_survey_step_is_checked_before_any_step_runs(tmp_path, capsys):
     path = _write(tmp_path, {"steps": [{"survey": survey}]})
     assert main(["run", str(path), "--check"]) == 0
     assert "step 1 survey" in capsys.readouterr().out and not (tmp_path / "night").exists()
+    path = _write(tmp_path, {"steps": [{"survey": {**survey, "references": ["reference"]}}]})
+    assert main(["run", str(path), "--check"]) == 0  # a folder of reference files: a mosaic, as survey reads it
 
 
 def test_a_detect_step_and_the_summary_are_checked_before_any_step_runs(tmp_path, capsys):
