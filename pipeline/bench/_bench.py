@@ -236,7 +236,8 @@ def _dis_beside(out, pair, store, workers):
     with opencv_threads(workers) as threads:  # DIS on the cores rsmb had
         mask = dis_changes(np.clip(pair.reference, 0, 1).astype(np.float32),
                            np.clip(pair.distorted, 0, 1).astype(np.float32), factor=factor)
-    out["dis"] = {"seconds": time.perf_counter() - t, "threads": threads, "f_measure": ops.confusion(mask, pair.change_mask).f_measure}
+    out["dis"] = {"seconds": time.perf_counter() - t, "threads": threads,
+                  "f_measure": ops.confusion(mask, pair.change_mask).f_measure}
     out["rsmb_over_dis_seconds"] = out["inplane_auto_neighbourhoods"]["seconds"] / out["dis"]["seconds"]
 
 

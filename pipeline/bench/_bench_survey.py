@@ -293,9 +293,10 @@ def bench_night(data, workdir, *, captures=8, side=1024, detect_side=4096):
           f"{out['night_cpu_s_per_megapixel']:.2f}, detect {out['detect_cpu_s_per_megapixel']:.2f}: the night's rate "
           f"per CPU-second {100 * out['cpu_ratio']:.0f} % of detect's; the night again (nothing to run) "
           f"{rerun_cpu:.1f} CPU-s")
+    rate = megapixels / no_report_s
     _echo(f"survey night without the captures' reports (--no-report): {no_report_s:.1f} s, {no_report_cpu:.1f} CPU-s "
-          f"({megapixels / no_report_s:.2f} MP/s, {100 * megapixels / no_report_s / out['detect_megapixels_per_s']:.0f} % "
-          f"of detect's rate): the reports take {100 * (1 - no_report_cpu / night_cpu):.0f} % of the night's CPU-seconds")
+          f"({rate:.2f} MP/s, {100 * rate / out['detect_megapixels_per_s']:.0f} % of detect's rate): the reports "
+          f"take {100 * (1 - no_report_cpu / night_cpu):.0f} % of the night's CPU-seconds")
     night, large = out["night_stage_cpu_s_per_megapixel"], out["detect_stage_cpu_s_per_megapixel"]
     if night and large:  # the rest of each command's CPU is outside the tile tasks: products, report, I/O, imports
         stages = sorted((s for s in large if s != "total"), key=lambda s: -abs(night.get(s, 0.0) - large[s]))

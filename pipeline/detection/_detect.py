@@ -509,7 +509,7 @@ NO_EVIDENCE_WARNING = 0.9
 
 def _finite_extreme(extreme, values):
     """``extreme`` (np.nanmin or np.nanmax) of ``values`` as a float, None
-    when none is finite (no tile had data to fit a gain: JSON has no NaN)."""
+    when none is finite (no tile had data for it: JSON has no NaN)."""
     values = np.asarray(values, np.float64)
     return float(extreme(values)) if np.isfinite(values).any() else None
 
@@ -524,7 +524,7 @@ def _result(group, run, plan, found, timings):
         changed_fraction=found.changed / pixels, components=found.components,
         gain_min=_finite_extreme(np.nanmin, found.gains), gain_max=_finite_extreme(np.nanmax, found.gains),
         resolved_tiles=[list(t) for t in found.resolve],
-        tile_agreement_px_max=float(np.nanmax(found.agree)) if np.isfinite(found.agree).any() else None,
+        tile_agreement_px_max=_finite_extreme(np.nanmax, found.agree),
         tasks_per_tile=found.tasks_per_tile, megapixels_per_s=pixels / 1e6 / timings["total_s"],
         timings=timings, pairing=plan.pairing.mode,
         reference_coverage=None if plan.pairing.coverage is None else plan.pairing.coverage.fraction,
