@@ -5,7 +5,8 @@ glob finds are paired with the reference set by footprint and run through
 :func:`detect`, several at once on one runner (one executor or cluster for the
 night, so the cores stay busy while a capture finishes its tail; a capture's
 products and report are written outside the ``parallel`` captures being
-detected, so the next capture's tasks run meanwhile).  Per capture,
+detected, so the next capture's tasks run meanwhile; in a night with reports,
+by a process of their own: :mod:`pipeline.archive._products`).  Per capture,
 under ``OUT_DIR/captures/<path relative to the glob's fixed prefix>/`` (the
 capture's file name, suffix included, is its folder's: names mirror the
 captures' tree, where no file holds another, so ``a.tif`` and ``a/b.tif``,
@@ -47,7 +48,7 @@ from ..detection._detect import detect
 from ..detection._plan import VERSION, DetectConfig
 from ._history import MASK_NAME
 from ._ledger import LEDGER_NAME, SETTLE, FileStat, Ledger, RunKey
-from ..detection._outputs import write_products
+from ._products import Here, ProductProcess
 from .._scheduler import WORKER_TIMEOUT, check_scheduler, open_runner
 
 __all__ = ["SurveyResult", "CaptureResult", "survey", "find_captures", "check_output"]
@@ -452,9 +453,13 @@ def _run_all(ledger, todo, out, references, config, run, stop):
                                              worker_timeout=run["worker_timeout"]))
     log.info("survey: %d capture(s) to run, %d at once, on %s", total, parallel, runner.describe())
     driver = ThreadPoolExecutor(parallel + cores + 1)
+    # a night's reports (matplotlib: Python that holds the interpreter's lock) stall the other captures' tasks:
+    # with them, the products are written by a process of their own when other captures run beside them
+    products = ProductProcess() if run["report"] and total > 1 else Here(run["report"])
+    stack.callback(products.close)
     interrupted = False
     try:
-        futures = {driver.submit(_run_capture, capture, name, out, references, config, runner, run["report"], slots,
+        futures = {driver.submit(_run_capture, capture, name, out, references, config, runner, products, slots,
                                  st, stop, run["observed"]): (capture, name, run_id, why)
                    for capture, name, run_id, why, st in todo}
         pending, count, deadline = set(futures), 0, None
@@ -543,7 +548,7 @@ def _fail(ledger, run_id, capture, exc, seconds):
     return CaptureResult(str(capture), "failed", reason, seconds=seconds or 0.0)
 
 
-def _run_capture(capture, name, out, references, config, runner, report, slots, st, stop, observed):
+def _run_capture(capture, name, out, references, config, runner, products, slots, st, stop, observed):
     """One capture, built aside and renamed into place: its store, products,
     thumbnail and report.  Runs in a driver thread; its tasks on ``runner``;
     its detection holds one of ``slots`` (a semaphore), its products and
@@ -561,7 +566,7 @@ def _run_capture(capture, name, out, references, config, runner, report, slots, 
     aside.mkdir(parents=True)
     try:
         folder = out / CAPTURES / name
-        features, read = _build(capture, aside, folder, references, config, runner, report, slots, stop)
+        changes, area, read = _build(capture, aside, folder, references, config, runner, products, slots, stop)
         mask = _read_observation(aside / MASK_NAME)
         _check_unchanged(capture, st)
         if stop.abandoned.is_set():  # the night gave up on it: it places nothing now
@@ -573,7 +578,7 @@ def _run_capture(capture, name, out, references, config, runner, report, slots, 
     finally:
         shutil.rmtree(aside, ignore_errors=True)
     return CaptureResult(str(capture), "done", "", list(read), str(folder), str(folder / "changes.gpkg"),
-                         len(features), float(sum(f.area_m2 for f in features)), time.perf_counter() - start)
+                         changes, area, time.perf_counter() - start)
 
 
 def _read_observation(path):
@@ -599,31 +604,21 @@ def _check_unchanged(capture, st):
                          f"recorded as done; it runs again next night")
 
 
-def _build(capture, aside, folder, references, config, runner, report, slots, stop):
+def _build(capture, aside, folder, references, config, runner, products, slots, stop):
     """The capture's products in ``aside`` (to become ``folder``): returns its
-    change polygons and the reference files read.  The detection holds one of
-    ``slots`` (a semaphore); a night stopped before it got one raises
-    :class:`_NotStarted`."""
+    changes (polygons) and their area, and the reference files read.  The
+    detection holds one of ``slots`` (a semaphore); a night stopped before it
+    got one raises :class:`_NotStarted`.  What the folder holds beside the
+    store is written by ``products`` (:class:`._products.ProductProcess`, or
+    :class:`._products.Here`)."""
     store = aside / "changes.zarr"
     with _slot(slots, stop):
         summary = detect(references, capture, store, config=config, runner=runner)
     # the store records where it lives once the folder is in place
     tiles.update_attrs(store, {"summary": {**summary.as_dict(), "output": str(folder / "changes.zarr")}})
-    group = tiles.open_result_store(store)
-    geo = tiles.GeoInfo.from_attrs(group.attrs.asdict())
-    write_products(store, aside, geo)  # the ground frame: the reference grid on the capture's nominal transform
-    features = tiles.change_polygons(group["change_mask_reference"], group["change_score_reference"], geo)
     # dated by the capture, not the clock: a capture redone gives the same file
-    tiles.write_changes_gpkg(aside / "changes.gpkg", features, geo.crs,
-                             last_change=os.stat(capture).st_mtime)
-    from ._survey_html import write_thumbnail
-
-    write_thumbnail(group, aside / "thumbnail.png")
-    if report:
-        from ..report._report import write_report
-
-        write_report(store, aside / "report")
-    return features, group.attrs["pairing"].get("read", [])
+    changes, area = products.write(store, aside, os.stat(capture).st_mtime)
+    return changes, area, tiles.open_result_store(store).attrs["pairing"].get("read", [])
 
 
 class _NotStarted(Exception):

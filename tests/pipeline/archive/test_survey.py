@@ -264,11 +264,11 @@ def test_new_and_changed_captures_run_alone(tmp_path, monkeypatch):
 
 def test_the_next_capture_is_detected_while_one_writes_its_report(tmp_path, monkeypatch):
     """--parallel 1 counts captures being detected, not captures writing their
-    report: with a report that takes a second, the next capture's detection
-    runs meanwhile, and no two detections ever overlap."""
+    products and report: with products that take a second, the next capture's
+    detection runs meanwhile, and no two detections ever overlap."""
     import threading
 
-    from rsmb.pipeline.report import _report
+    from rsmb.pipeline.archive._products import ProductProcess
 
     references, night = _night(tmp_path, _scene(), bad=False)
     spans, lock = {"detect": [], "report": []}, threading.Lock()
@@ -285,7 +285,7 @@ def test_the_next_capture_is_detected_while_one_writes_its_report(tmp_path, monk
         return run
 
     monkeypatch.setattr(survey_module, "detect", timed("detect", survey_module.detect))
-    monkeypatch.setattr(_report, "write_report", timed("report", _report.write_report, pause=1.0))
+    monkeypatch.setattr(ProductProcess, "write", timed("report", ProductProcess.write, pause=1.0))
     result = survey_module.survey(references, str(night / "**" / "*.tif"), tmp_path / "out", parallel=1,
                                   settle=0)
     assert result.done == 3 and len(spans["detect"]) == 3 and len(spans["report"]) == 3
