@@ -17,8 +17,9 @@ The child is started without multiprocessing (which would import the caller's
 ``__main__`` again) and in a session of its own (a Ctrl-C at the terminal
 stops the night, whose driver decides what the child still does).  It reads
 one request per line on its stdin (JSON) and answers one line on a pipe of its
-own: the changes found and their area, or the error's one-line reason as the
-night records it.  It ends when its stdin closes: at the night's end, or when
+own: the changes found, their area and the mask as the history reads it
+(:func:`read_observation`, geometries as WKB), or the error's one-line reason
+as the night records it.  It ends when its stdin closes: at the night's end, or when
 the night's process ends in any way.
 """
 
@@ -34,7 +35,7 @@ from rsmb import tiles
 from rsmb.ops import InputError, RSMBError
 from rsmb.ops._errors import one_line
 
-__all__ = ["Here", "ProductProcess", "write_capture_products"]
+__all__ = ["Here", "ProductProcess", "read_observation", "write_capture_products"]
 
 log = logging.getLogger("rsmb")
 
@@ -71,6 +72,19 @@ def write_capture_products(store, folder, last_change, report=True):
     return len(features), float(sum(f.area_m2 for f in features))
 
 
+def read_observation(folder):
+    """:func:`._history.read_observation` of the ground-frame mask the
+    products placed in ``folder``, for the history as the capture ends, or
+    None when it cannot be read now (the night's end reads it again and
+    reports what it finds)."""
+    from ._history import MASK_NAME, read_observation
+
+    try:
+        return read_observation(Path(folder) / MASK_NAME)
+    except Exception:  # noqa: BLE001 - the history step owns this file's errors
+        return None
+
+
 class Here:
     """:class:`ProductProcess`'s :meth:`write` and :meth:`close` in the
     calling thread (a night of one capture: nothing runs beside its
@@ -80,7 +94,9 @@ class Here:
         self.report = report
 
     def write(self, store, folder, last_change):
-        return write_capture_products(store, folder, last_change, self.report)
+        """The products of ``store`` in ``folder`` (:func:`write_capture_products`):
+        returns their changes, area and :func:`read_observation`."""
+        return (*write_capture_products(store, folder, last_change, self.report), read_observation(folder))
 
     def close(self):
         pass
@@ -114,7 +130,7 @@ class ProductProcess(Here):
                 answer = self._ask({"store": str(store), "folder": str(folder), "last_change": last_change})
                 if "reason" in answer:
                     raise InputError(answer["reason"])
-                return answer["changes"], answer["area_m2"]
+                return answer["changes"], answer["area_m2"], _decoded(answer["observation"])
         return super().write(store, folder, last_change)  # no child
 
     def _start(self):
@@ -187,7 +203,7 @@ def serve(answers_fd, level, night_pid):
         request = json.loads(line)
         try:
             changes, area = write_capture_products(request["store"], request["folder"], request["last_change"])
-            answer = {"changes": changes, "area_m2": area}
+            answer = {"changes": changes, "area_m2": area, "observation": _encoded(read_observation(request["folder"]))}
         except Exception as exc:  # noqa: BLE001 - the night records it as the capture's failure
             reason = one_line(exc) if isinstance(exc, RSMBError) else f"{type(exc).__name__}: {one_line(exc)}"
             answer = {"reason": reason}
@@ -196,3 +212,23 @@ def serve(answers_fd, level, night_pid):
             answers.flush()
         except BrokenPipeError:  # the night's process is gone
             return
+
+
+def _encoded(observation):
+    """A :func:`read_observation` as JSON: its geometries as WKB in hex."""
+    if observation is None:
+        return None
+    import shapely
+
+    cover, changes, crs = observation
+    return [shapely.to_wkb(cover, hex=True), [shapely.to_wkb(c, hex=True) for c in changes], crs]
+
+
+def _decoded(value):
+    """The :func:`read_observation` that :func:`_encoded` made ``value`` of."""
+    if value is None:
+        return None
+    import shapely
+
+    cover, changes, crs = value
+    return shapely.from_wkb(cover), [shapely.from_wkb(c) for c in changes], crs

@@ -566,8 +566,7 @@ def _run_capture(capture, name, out, references, config, runner, products, slots
     aside.mkdir(parents=True)
     try:
         folder = out / CAPTURES / name
-        changes, area, read = _build(capture, aside, folder, references, config, runner, products, slots, stop)
-        mask = _read_observation(aside / MASK_NAME)
+        changes, area, mask, read = _build(capture, aside, folder, references, config, runner, products, slots, stop)
         _check_unchanged(capture, st)
         if stop.abandoned.is_set():  # the night gave up on it: it places nothing now
             raise InputError(f"{capture}: interrupted while running ({stop.why})")
@@ -579,17 +578,6 @@ def _run_capture(capture, name, out, references, config, runner, products, slots
         shutil.rmtree(aside, ignore_errors=True)
     return CaptureResult(str(capture), "done", "", list(read), str(folder), str(folder / "changes.gpkg"),
                          changes, area, time.perf_counter() - start)
-
-
-def _read_observation(path):
-    """:func:`._history.read_observation` of ``path``, or None when it cannot
-    be read now (the night's end reads it again and reports what it finds)."""
-    from ._history import read_observation
-
-    try:
-        return read_observation(path)
-    except Exception:  # noqa: BLE001 - the history step owns this file's errors
-        return None
 
 
 def _check_unchanged(capture, st):
@@ -606,7 +594,8 @@ def _check_unchanged(capture, st):
 
 def _build(capture, aside, folder, references, config, runner, products, slots, stop):
     """The capture's products in ``aside`` (to become ``folder``): returns its
-    changes (polygons) and their area, and the reference files read.  The
+    changes (polygons), their area, its mask read for the history (None
+    when it could not be read now) and the reference files read.  The
     detection holds one of ``slots`` (a semaphore); a night stopped before it
     got one raises :class:`_NotStarted`.  What the folder holds beside the
     store is written by ``products`` (:class:`._products.ProductProcess`, or
@@ -617,8 +606,8 @@ def _build(capture, aside, folder, references, config, runner, products, slots, 
     # the store records where it lives once the folder is in place
     tiles.update_attrs(store, {"summary": {**summary.as_dict(), "output": str(folder / "changes.zarr")}})
     # dated by the capture, not the clock: a capture redone gives the same file
-    changes, area = products.write(store, aside, os.stat(capture).st_mtime)
-    return changes, area, tiles.open_result_store(store).attrs["pairing"].get("read", [])
+    changes, area, mask = products.write(store, aside, os.stat(capture).st_mtime)
+    return changes, area, mask, tiles.open_result_store(store).attrs["pairing"].get("read", [])
 
 
 class _NotStarted(Exception):

@@ -43,6 +43,19 @@ def test_a_night_with_reports_writes_its_products_in_a_process_of_its_own(tmp_pa
         assert (changes, area) == (capture.changes, capture.changed_m2)
         for name in FILES:
             assert (here / name).read_bytes() == (folder / name).read_bytes(), name
+    # the child's answer: what the night's process would make of the same store
+    capture = result.captures[0]
+    store, stamp = Path(capture.output) / "changes.zarr", os.stat(capture.capture).st_mtime
+    products = _products.ProductProcess()
+    try:
+        child = products.write(store, tmp_path / "child", stamp)
+    finally:
+        products.close()
+    here = _products.Here().write(store, tmp_path / "here2", stamp)
+    assert child[:2] == here[:2] == (capture.changes, capture.changed_m2)
+    (cover, changes, crs), (cover_here, changes_here, crs_here) = child[2], here[2]
+    assert cover.equals_exact(cover_here, 0) and crs == crs_here and len(changes) == len(changes_here) > 0
+    assert all(a.equals_exact(b, 0) for a, b in zip(changes, changes_here))
 
 
 def test_products_that_fail_in_the_process_fail_with_the_reason_the_night_would_give(tmp_path):
