@@ -30,11 +30,16 @@ log = logging.getLogger("rsmb")
 @click.version_option(package_name="rsmb")
 def cli(verbose, quiet):
     """Registration and change detection under rolling shutter and motion blur."""
-    level = logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
+    configure_logging(logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else logging.INFO))
+    _quiet_library_warnings()
+
+
+def configure_logging(level):
+    """rsmb's log lines on stderr from ``level`` on (the command's, and a
+    survey's products process's)."""
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
     log.setLevel(level)  # basicConfig configures once per process; the level holds per invocation
     logging.getLogger("distributed").setLevel(max(level, logging.WARNING))
-    _quiet_library_warnings()
 
 
 def _quiet_library_warnings():

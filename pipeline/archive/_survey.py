@@ -48,7 +48,7 @@ from ..detection._detect import detect
 from ..detection._plan import VERSION, DetectConfig
 from ._history import MASK_NAME
 from ._ledger import LEDGER_NAME, SETTLE, FileStat, Ledger, RunKey
-from ._products import Here, ProductProcess
+from ._products import Here, ProductProcess, failure_reason
 from .._scheduler import WORKER_TIMEOUT, check_scheduler, open_runner
 
 __all__ = ["SurveyResult", "CaptureResult", "survey", "find_captures", "check_output"]
@@ -455,7 +455,7 @@ def _run_all(ledger, todo, out, references, config, run, stop):
     driver = ThreadPoolExecutor(parallel + cores + 1)
     # a night's reports (matplotlib: Python that holds the interpreter's lock) stall the other captures' tasks:
     # with them, the products are written by a process of their own when other captures run beside them
-    products = ProductProcess() if run["report"] and total > 1 else Here(run["report"])
+    products = ProductProcess().start() if run["report"] and total > 1 else Here(run["report"])
     stack.callback(products.close)
     interrupted = False
     try:
@@ -478,9 +478,11 @@ def _run_all(ledger, todo, out, references, config, run, stop):
     except BaseException:
         driver.shutdown(wait=False, cancel_futures=True)
         stop.abandoned.set()
+        products.kill()
         raise
     if interrupted:
         driver.shutdown(wait=False, cancel_futures=True)  # the runner and its tasks end with the process
+        products.kill()  # the captures it could be writing are abandoned: nothing of theirs is placed
     else:
         driver.shutdown(wait=True)
         stack.close()
@@ -542,8 +544,7 @@ def _record(ledger, entry, future, progress, results, stop):
 
 
 def _fail(ledger, run_id, capture, exc, seconds):
-    reason = one_line(exc) if isinstance(exc, RSMBError) else \
-        f"{type(exc).__name__}: {one_line(exc)}"
+    reason = failure_reason(exc)
     ledger.finish(run_id, "failed", reason)
     return CaptureResult(str(capture), "failed", reason, seconds=seconds or 0.0)
 
@@ -606,7 +607,7 @@ def _build(capture, aside, folder, references, config, runner, products, slots, 
     # the store records where it lives once the folder is in place
     tiles.update_attrs(store, {"summary": {**summary.as_dict(), "output": str(folder / "changes.zarr")}})
     # dated by the capture, not the clock: a capture redone gives the same file
-    changes, area, mask = products.write(store, aside, os.stat(capture).st_mtime)
+    changes, area, mask = products.write(store, aside, os.stat(capture).st_mtime, capture)
     return changes, area, mask, tiles.open_result_store(store).attrs["pairing"].get("read", [])
 
 
