@@ -30,16 +30,17 @@ log = logging.getLogger("rsmb")
 @click.version_option(package_name="rsmb")
 def cli(verbose, quiet):
     """Registration and change detection under rolling shutter and motion blur."""
-    configure_logging(logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else logging.INFO))
-    _quiet_library_warnings()
+    configure_output(logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else logging.INFO))
 
 
-def configure_logging(level):
-    """rsmb's log lines on stderr from ``level`` on (the command's, and a
-    survey's products process's)."""
+def configure_output(level):
+    """What the command's process prints on stderr, and a survey's products
+    process's: rsmb's log lines from ``level`` on, no library warnings that
+    say nothing to a user."""
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
     log.setLevel(level)  # basicConfig configures once per process; the level holds per invocation
     logging.getLogger("distributed").setLevel(max(level, logging.WARNING))
+    _quiet_library_warnings()
 
 
 def _quiet_library_warnings():

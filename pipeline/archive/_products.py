@@ -245,9 +245,11 @@ def serve(answers_fd, level, night_pid):
     then one capture's products per request line on stdin, one answer line
     on ``answers_fd``; ends at the end of stdin.  ``night_pid``, the night's
     process, names it on its command line."""
-    from rsmb.pipeline.cli import configure_logging
+    from .._scheduler import configure_process
+    from ..cli import configure_output
 
-    configure_logging(level)
+    configure_process()  # a process that runs rsmb and nothing else, as the night's: one OpenCV and BLAS thread
+    configure_output(level)
     answers = os.fdopen(answers_fd, "w", encoding="utf-8")
     from ..report import _report  # noqa: F401 - imported before the first capture asks
 
@@ -270,7 +272,7 @@ def serve(answers_fd, level, night_pid):
 
 
 def _encoded(observation):
-    """A :func:`read_observation` as JSON: its geometries as WKB in hex."""
+    """An :func:`observe` as JSON: its geometries as WKB in hex."""
     if observation is None:
         return None
     import shapely
@@ -280,7 +282,7 @@ def _encoded(observation):
 
 
 def _decoded(value):
-    """The :func:`read_observation` that :func:`_encoded` made ``value`` of."""
+    """The :func:`observe` that :func:`_encoded` made ``value`` of."""
     if value is None:
         return None
     import shapely
