@@ -175,7 +175,9 @@ def _change_masks(runner, run, plan, fused, hist, timings):
     t0 = time.perf_counter()
     shape, blocks, changes = plan.shape, plan.blocks, plan.config.changes
     threshold = ops.change_threshold(hist, params=changes)
-    labelled = runner.map("label", _tasks.label_task, [(run, b, shape, threshold, changes) for b in blocks])
+    groups = _tasks.block_groups(blocks)
+    labelled = [out for outs in runner.map("label", _tasks.label_task, [(run, g, shape, threshold, changes)
+                                                                        for g in groups]) for out in outs]
     summaries = {s.index: s for s, _, _ in labelled}
     offsets, root, area, peak = tiles.merge_tile_labels(summaries, blocks.grid_shape)
     keep_global = ops.keep_components(area, peak, threshold, params=changes)
@@ -188,11 +190,13 @@ def _change_masks(runner, run, plan, fused, hist, timings):
             kept[b.index] = (b.core, keep)
     stored_path = fused.astype(np.float32).astype(np.float64)  # as the store holds it
     args = []
-    for b in blocks:  # every block: its no-evidence marks and its ground frame
-        window = b.grown(plan.grid.halo, shape)
-        pieces = [kept[i] for i in blocks.covering(window) if i in kept]
-        args.append((run, b, window, pieces, stored_path[window[0]], plan.camera, plan.params.trajectory_axes, changes))
-    masked = runner.map("masks", _tasks.mask_task, args)
+    for group in groups:  # every block: its no-evidence marks and its ground frame
+        jobs = []
+        for b in group:
+            window = b.grown(plan.grid.halo, shape)
+            jobs.append((b, window, [kept[i] for i in blocks.covering(window) if i in kept]))
+        args.append((run, jobs, stored_path[window[0]], plan.camera, plan.params.trajectory_axes, changes))
+    masked = [out for outs in runner.map("masks", _tasks.mask_task, args) for out in outs]
     timings["changes_s"] = time.perf_counter() - t0
     timings["changes_compute_s_sum"] = float(sum(c for _, c, _ in labelled) + sum(c for _, c in masked))
     return threshold, sum(n for n, _ in masked), int(keep_global.sum()), sum(n for _, _, n in labelled)

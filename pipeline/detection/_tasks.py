@@ -1,7 +1,8 @@
 """Tile tasks: each reads its own windows from the zarr store, calls the ops
-kernels and writes its core.  Registration runs per tile; ingest, labelling
-and masks run per block of tiles (see ``pipeline.detection._plan._block_grid``), a
-:class:`tiles.Tile` of the coarser grid.  Top-level functions with plain
+kernels and writes its core.  Registration runs per tile; ingest per block
+of tiles (see ``pipeline.detection._plan._block_grid``), a :class:`tiles.Tile`
+of the coarser grid; labelling and masks per group of neighbouring blocks
+(:func:`block_groups`).  Top-level functions with plain
 arguments, so any dask scheduler (threads, processes, distributed) can run
 them."""
 
@@ -270,21 +271,47 @@ def layer_components(group):
     return sorted(out, key=lambda c: -c["pixels"])
 
 
-def label_task(store, block, shape, threshold, change_params):
-    """Stage 2: label the change candidates of one block's core, its score grown
-    by the margin the local half-maximum test needs.  Returns (TileLabels,
-    compute seconds, pixels of the core without evidence: NaN score)."""
-    window = block.grown(change_params.margin, shape)
-    score = _array(store, "change_score")[window]
-    start = time.perf_counter()
-    candidates = ops.change_candidates(score, threshold, params=change_params)
-    core = _inside(block.core, window)
-    labels, area, peak = ops.label_components(candidates[core], score[core])
-    silent = int(np.isnan(score[core]).sum())
-    compute = time.perf_counter() - start
-    if len(area) > 1:  # unwritten chunks read as 0: a block without candidates writes nothing
-        _array(store, "work/labels")[block.core] = labels
-    return TileLabels.from_labels(block.index, labels, area, peak), compute, silent
+#: Blocks of one block row that a label or mask task takes together (:func:`block_groups`).
+GROUP_BLOCKS = 4
+
+
+def block_groups(blocks, most=GROUP_BLOCKS):
+    """The blocks of ``blocks`` (a :class:`tiles.TileGrid`) in groups of up to
+    ``most`` neighbours along a block row.  A label or mask task reads one
+    window for its group: zarr decodes a whole chunk for any part of it, so
+    the halo of each block alone would decode its neighbours' chunks again,
+    once per block that reads them."""
+    ny, nx = blocks.grid_shape
+    return [[blocks[ty, tx] for tx in range(x0, min(x0 + most, nx))] for ty in range(ny) for x0 in range(0, nx, most)]
+
+
+def _union(windows):
+    """The smallest window (tuple of slices) holding every one of ``windows``."""
+    return tuple(slice(min(w[d].start for w in windows), max(w[d].stop for w in windows)) for d in range(2))
+
+
+def label_task(store, blocks, shape, threshold, change_params):
+    """Stage 2: label the change candidates of each block's core of a group
+    (:func:`block_groups`), its score grown by the margin the local
+    half-maximum test needs; the group's score is read once.  Returns per
+    block (TileLabels, compute seconds, pixels of the core without evidence:
+    NaN score)."""
+    windows = [b.grown(change_params.margin, shape) for b in blocks]
+    union = _union(windows)
+    scores = _array(store, "change_score")[union]
+    out = []
+    for block, window in zip(blocks, windows):
+        score = scores[_inside(window, union)]
+        start = time.perf_counter()
+        candidates = ops.change_candidates(score, threshold, params=change_params)
+        core = _inside(block.core, window)
+        labels, area, peak = ops.label_components(candidates[core], score[core])
+        silent = int(np.isnan(score[core]).sum())
+        compute = time.perf_counter() - start
+        if len(area) > 1:  # unwritten chunks read as 0: a block without candidates writes nothing
+            _array(store, "work/labels")[block.core] = labels
+        out.append((TileLabels.from_labels(block.index, labels, area, peak), compute, silent))
+    return out
 
 
 def _inside(part, window):
@@ -292,40 +319,50 @@ def _inside(part, window):
     return tuple(slice(p.start - w.start, p.stop - w.start) for p, w in zip(part, window))
 
 
-def mask_task(store, block, window, kept, trajectory, camera, axes, change_params):
-    """Stage 3: one block's changes in both frames.  The kept labels of the
-    blocks under its window (core plus halo) make the window's mask, small
-    holes are filled there (a hole cut by a seam is filled like any other),
-    pixels with no evidence (a NaN score) are marked :data:`ops.NO_EVIDENCE`
-    in it and in the parallax mask, their cores are written, and the window
-    carried by the fused ``trajectory`` (rows of the window) gives the
+def mask_task(store, jobs, trajectory, camera, axes, change_params):
+    """Stage 3: each block's changes of a group (:func:`block_groups`) in both
+    frames; ``jobs`` lists per block (block, window, kept), the group's
+    windows read once.  The kept labels of the blocks under a block's window
+    (core plus halo) make the window's mask, small holes are filled there (a
+    hole cut by a seam is filled like any other), pixels with no evidence (a
+    NaN score) are marked :data:`ops.NO_EVIDENCE` in it and in the parallax
+    mask, their cores are written, and the window carried by the fused
+    ``trajectory`` (the rows of the group's windows, which its blocks share) gives the
     block's mask, score and parallax mask in the reference grid
     (:func:`ops.to_ground`).  Every block runs: the no-evidence marks and the
     ground frame are needed whether or not a change is near.
 
     ``kept`` lists (core, keep flags per local label) of the blocks under the
-    window that kept some label.  Returns (changed core pixels, compute seconds).
+    window that kept some label.  Returns per block (changed core pixels,
+    compute seconds).
     """
-    labels = _array(store, "work/labels")[window] if kept else None
-    score = _array(store, "change_score")[window]
-    parallax = _array(store, "parallax_mask")[window]
-    start = time.perf_counter()
-    mask = np.zeros(score.shape, dtype=bool)
-    for core, keep in kept:
-        part = _inside(tuple(slice(max(c.start, w.start), min(c.stop, w.stop)) for c, w in zip(core, window)), window)
-        mask[part] = keep[labels[part]]
-    if kept:
-        mask = ops.fill_holes(mask, params=change_params)
-    sensor = ops.evidence_mask(mask, score)
-    parallax = np.where(np.isfinite(score), parallax == 1, ops.NO_EVIDENCE).astype(np.uint8)
-    ground = ops.to_ground(sensor, score, parallax, trajectory, axes=axes, camera=camera,
-                           reference_shape=block.core_shape, reference_origin_yx=block.core_origin,
-                           distorted_origin_yx=(window[0].start, window[1].start))
-    core = _inside(block.core, window)
-    compute = time.perf_counter() - start
-    _array(store, "change_mask")[block.core] = sensor[core]
-    _array(store, "parallax_mask")[block.core] = parallax[core]
-    _array(store, "change_mask_reference")[block.core] = ground.mask
-    _array(store, "change_score_reference")[block.core] = ground.score
-    _array(store, "parallax_mask_reference")[block.core] = ground.parallax
-    return int(mask[core].sum()), compute
+    union = _union([window for _, window, _ in jobs])
+    all_labels = _array(store, "work/labels")[union] if any(kept for _, _, kept in jobs) else None
+    all_scores = _array(store, "change_score")[union]
+    all_parallax = _array(store, "parallax_mask")[union]
+    out = []
+    for block, window, kept in jobs:
+        inside = _inside(window, union)
+        labels = None if all_labels is None else all_labels[inside]
+        score, parallax = all_scores[inside], all_parallax[inside]
+        start = time.perf_counter()
+        mask = np.zeros(score.shape, dtype=bool)
+        for core, keep in kept:
+            part = _inside(tuple(slice(max(c.start, w.start), min(c.stop, w.stop)) for c, w in zip(core, window)), window)
+            mask[part] = keep[labels[part]]
+        if kept:
+            mask = ops.fill_holes(mask, params=change_params)
+        sensor = ops.evidence_mask(mask, score)
+        parallax = np.where(np.isfinite(score), parallax == 1, ops.NO_EVIDENCE).astype(np.uint8)
+        ground = ops.to_ground(sensor, score, parallax, trajectory[inside[0]], axes=axes, camera=camera,
+                               reference_shape=block.core_shape, reference_origin_yx=block.core_origin,
+                               distorted_origin_yx=(window[0].start, window[1].start))
+        core = _inside(block.core, window)
+        compute = time.perf_counter() - start
+        _array(store, "change_mask")[block.core] = sensor[core]
+        _array(store, "parallax_mask")[block.core] = parallax[core]
+        _array(store, "change_mask_reference")[block.core] = ground.mask
+        _array(store, "change_score_reference")[block.core] = ground.score
+        _array(store, "parallax_mask_reference")[block.core] = ground.parallax
+        out.append((int(mask[core].sum()), compute))
+    return out
