@@ -1,9 +1,11 @@
 """``rsmb detect``: tiled RSMB registration and change detection of one capture.
 
 Registration runs one task per tile.  The stages that mostly move data (ingest,
-labelling, masks) run one task per block of tiles, about 1024 px on a side (see
+labelling, masks) run per block of tiles, about 1024 px on a side (see
 :func:`_block_grid`): per zarr call and per window edge they cost the same
-whatever the tile, so small tiles would pay them many times over.
+whatever the tile, so small tiles would pay them many times over.  Labelling
+and masks take a group of neighbouring blocks of a block row per task
+(:func:`_tasks.block_groups`), which reads the group's window once.
 
 :func:`detect` reads as its stages:
 
@@ -18,9 +20,10 @@ whatever the tile, so small tiles would pay them many times over.
    tiles whose path disagrees with their band's re-solved around the others';
 5. :func:`_change_masks`: one change threshold for the whole image from summed
    tile histograms; change candidates labelled per block (its score read with
-   the margin the local half-maximum test needs), labels merged across seams,
-   components kept that reach the threshold and the minimum area; per block,
-   the mask of its window from the kept labels, small holes filled, no
+   the margin the local half-maximum test needs, a group of blocks at once),
+   labels merged across seams, components kept that reach the threshold and
+   the minimum area; per block, the mask of its window from the kept labels
+   (again by groups), small holes filled, no
    evidence marked 255, its core written, and its mask, score and parallax
    mask in the reference grid (the ground frame) from the fused trajectory;
 6. :func:`_finish`: attributes, an atomic rename of the store, GeoTIFFs on

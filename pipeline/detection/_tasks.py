@@ -271,18 +271,29 @@ def layer_components(group):
     return sorted(out, key=lambda c: -c["pixels"])
 
 
-#: Blocks of one block row that a label or mask task takes together (:func:`block_groups`).
-GROUP_BLOCKS = 4
+#: Most pixels a group of blocks of a label or mask task spans along its block
+#: row (:func:`block_groups`): four blocks of 1024 px; one block however wide.
+GROUP_WIDTH = 4096
 
 
-def block_groups(blocks, most=GROUP_BLOCKS):
-    """The blocks of ``blocks`` (a :class:`tiles.TileGrid`) in groups of up to
-    ``most`` neighbours along a block row.  A label or mask task reads one
-    window for its group: zarr decodes a whole chunk for any part of it, so
-    the halo of each block alone would decode its neighbours' chunks again,
-    once per block that reads them."""
-    ny, nx = blocks.grid_shape
-    return [[blocks[ty, tx] for tx in range(x0, min(x0 + most, nx))] for ty in range(ny) for x0 in range(0, nx, most)]
+def block_groups(blocks, width=GROUP_WIDTH):
+    """The blocks of ``blocks`` (a :class:`tiles.TileGrid`) in groups of
+    neighbours along a block row whose cores span at most ``width`` px (one
+    block at least).  A label or mask task reads one window for its group:
+    zarr decodes a whole chunk for any part of it, so the halo of each block
+    alone would decode its neighbours' chunks again, once per block that
+    reads them.  The width bounds a task's memory as a block's size did."""
+    groups = []
+    for ty in range(blocks.grid_shape[0]):
+        row = [blocks[ty, tx] for tx in range(blocks.grid_shape[1])]
+        group = [row[0]]
+        for block in row[1:]:
+            if block.core[1].stop - group[0].core[1].start > width:
+                groups.append(group)
+                group = []
+            group.append(block)
+        groups.append(group)
+    return groups
 
 
 def _union(windows):

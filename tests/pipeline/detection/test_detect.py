@@ -289,21 +289,23 @@ def test_task_arrays_write_empty_chunks_only_when_compressed(tmp_path):
 
 def test_label_and_mask_tasks_by_groups_of_blocks(tmp_path, monkeypatch):
     """The label and mask tasks take the blocks of a block row in groups
-    (:func:`_tasks.block_groups`: every block once, neighbours of one row,
-    at most ``most`` each) and read each group's window once; the store is
-    the same whatever the groups, a change across the seam between two
-    groups included."""
+    (:func:`_tasks.block_groups`: every block once, neighbours of one row
+    spanning at most ``width`` px, a wider block alone) and read each
+    group's window once; the store is the same whatever the groups, a
+    change across the seam between two groups included."""
     import functools
 
     from rsmb import tiles
     from rsmb.pipeline.detection import _tasks
 
-    blocks = tiles.TileGrid((512, 1300), 128, 16).coarsened(2)  # 2 x 5 blocks, the last one merged
-    groups = _tasks.block_groups(blocks, most=2)
+    blocks = tiles.TileGrid((512, 1300), 128, 16).coarsened(2)  # 2 x 5 blocks of 256 px, the last one 276
+    groups = _tasks.block_groups(blocks, width=512)
     assert [[b.index for b in g] for g in groups] == [[(0, 0), (0, 1)], [(0, 2), (0, 3)], [(0, 4)],
                                                       [(1, 0), (1, 1)], [(1, 2), (1, 3)], [(1, 4)]]
-    assert [[b.index for b in g] for g in _tasks.block_groups(blocks)] == [
+    assert [[b.index for b in g] for g in _tasks.block_groups(blocks, width=1024)] == [
         [(0, 0), (0, 1), (0, 2), (0, 3)], [(0, 4)], [(1, 0), (1, 1), (1, 2), (1, 3)], [(1, 4)]]
+    assert [len(g) for g in _tasks.block_groups(blocks, width=100)] == [1] * 10  # a wide block alone
+    assert [len(g) for g in _tasks.block_groups(tiles.TileGrid((8192, 8192), 4096, 64))] == [1, 1, 1, 1]
 
     pair = ops.synthesize_pair((512, 768), motion="inplane", changes=10, noise=0.002, seed=5)
     distorted = pair.distorted.copy()
@@ -312,11 +314,11 @@ def test_label_and_mask_tasks_by_groups_of_blocks(tmp_path, monkeypatch):
     np.save(ref, pair.reference)
     np.save(dist, distorted)
     stores = {}
-    for most in (1, 2):
-        monkeypatch.setattr(_tasks, "block_groups", functools.partial(_tasks.block_groups, most=most))
-        detect(ref, dist, tmp_path / f"g{most}.zarr", config=DetectConfig(tile=128))
-        stores[most], attrs = read_store(tmp_path / f"g{most}.zarr")
+    for width in (256, 512):
+        monkeypatch.setattr(_tasks, "block_groups", functools.partial(_tasks.block_groups, width=width))
+        detect(ref, dist, tmp_path / f"g{width}.zarr", config=DetectConfig(tile=128))
+        stores[width], attrs = read_store(tmp_path / f"g{width}.zarr")
     assert attrs["tile_grid"]["block"] == 256 and attrs["tile_grid"]["tiles"] == [4, 6]
-    assert (stores[2]["change_mask"][200:216, 248:264] == 1).all()
-    for name, values in stores[1].items():
-        assert np.array_equal(values, stores[2][name], equal_nan=values.dtype.kind == "f"), name
+    assert (stores[512]["change_mask"][200:216, 248:264] == 1).all()
+    for name, values in stores[256].items():
+        assert np.array_equal(values, stores[512][name], equal_nan=values.dtype.kind == "f"), name
