@@ -198,7 +198,8 @@ def _change_masks(runner, run, plan, fused, hist, timings):
         for b in group:
             window = b.grown(plan.grid.halo, shape)
             jobs.append((b, window, [kept[i] for i in blocks.covering(window) if i in kept]))
-        args.append((run, jobs, stored_path[window[0]], plan.camera, plan.params.trajectory_axes, changes))
+        rows = jobs[0][1][0]  # the windows' rows: one block row's
+        args.append((run, jobs, stored_path[rows], plan.camera, plan.params.trajectory_axes, changes))
     masked = [out for outs in runner.map("masks", _tasks.mask_task, args) for out in outs]
     timings["changes_s"] = time.perf_counter() - t0
     timings["changes_compute_s_sum"] = float(sum(c for _, c, _ in labelled) + sum(c for _, c in masked))

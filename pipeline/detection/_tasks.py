@@ -338,8 +338,8 @@ def mask_task(store, jobs, trajectory, camera, axes, change_params):
     hole cut by a seam is filled like any other), pixels with no evidence (a
     NaN score) are marked :data:`ops.NO_EVIDENCE` in it and in the parallax
     mask, their cores are written, and the window carried by the fused
-    ``trajectory`` (the rows of the group's windows, which its blocks share) gives the
-    block's mask, score and parallax mask in the reference grid
+    ``trajectory`` (of the windows' rows, which the group's blocks share)
+    gives the block's mask, score and parallax mask in the reference grid
     (:func:`ops.to_ground`).  Every block runs: the no-evidence marks and the
     ground frame are needed whether or not a change is near.
 
@@ -359,7 +359,8 @@ def mask_task(store, jobs, trajectory, camera, axes, change_params):
         start = time.perf_counter()
         mask = np.zeros(score.shape, dtype=bool)
         for core, keep in kept:
-            part = _inside(tuple(slice(max(c.start, w.start), min(c.stop, w.stop)) for c, w in zip(core, window)), window)
+            overlap = tuple(slice(max(c.start, w.start), min(c.stop, w.stop)) for c, w in zip(core, window))
+            part = _inside(overlap, window)
             mask[part] = keep[labels[part]]
         if kept:
             mask = ops.fill_holes(mask, params=change_params)
