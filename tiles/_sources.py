@@ -314,11 +314,18 @@ def open_source(path: str) -> _Source:
     Raises
     ------
     InputError
-        If ``path`` does not exist or no format reads it (the message lists the
+        If ``path`` does not exist or cannot be reached (a folder on its path
+        the user may not enter), or no format reads it (the message lists the
         supported extensions).
     """
-    if not os.path.exists(path):
-        raise InputError(f"{path}: no such file or directory")
+    try:
+        os.stat(path)
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file or directory") from None
+    except PermissionError:
+        raise InputError(f"{path}: permission denied (a folder on its path cannot be entered)") from None
+    except OSError as exc:  # a file used as a folder on the path, a name too long ...
+        raise InputError(f"{path}: {exc.strerror or exc}") from None
     for fmt in _FORMATS:
         if fmt.accepts(path):
             return fmt(path)

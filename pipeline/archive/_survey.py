@@ -559,7 +559,9 @@ def _run_capture(capture, name, out, references, config, runner, products, slots
     for the history here (beside the other captures' detection, not in the
     night's serial end), goes into ``observed`` by its final path."""
     start = time.perf_counter()
-    header = tiles.probe_header(capture)[1]
+    shape, header = tiles.probe_header(capture)
+    if config.tile == SURVEY_TILE:  # the survey's default, not asked for: no note on a smaller capture
+        config = dataclasses.replace(config, tile=min(SURVEY_TILE, max(max(shape), 32)))
     if not tiles.is_georeferenced(header):
         raise InputError(f"{capture}: not georeferenced (a survey pairs captures with the reference by footprint)")
     aside = out / PARTIAL / "building" / name

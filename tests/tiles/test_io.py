@@ -305,6 +305,29 @@ def test_input_errors_name_file_and_problem(tmp_path, make, problem):
     _assert_one_line(exc_info, path)
 
 
+def test_an_input_that_cannot_be_reached_is_not_called_missing(tmp_path, monkeypatch):
+    """A file in a folder the user may not enter exists: the error says
+    permission, not "no such file" (the test runs as any user: the refusal
+    is made by ``os.stat``)."""
+    import os
+
+    path = _save(tmp_path / "image.npy", np.ones((4, 5), np.float32))
+    real_stat = os.stat
+
+    def refuse(p, *args, **kwargs):
+        if os.fspath(p) == str(path):
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_stat(p, *args, **kwargs)
+
+    monkeypatch.setattr(os, "stat", refuse)
+    with pytest.raises(InputError, match="permission denied") as exc_info:
+        read_image(path)
+    _assert_one_line(exc_info, path)
+    with pytest.raises(InputError, match="Not a directory") as exc_info:
+        read_image(path / "inside.npy")  # a file used as a folder
+    _assert_one_line(exc_info, path / "inside.npy")
+
+
 def test_nan_in_a_float_image_is_nodata(tmp_path):
     """NaN in a float raster without a nodata tag is no-data (not an error)."""
     image = np.array([[0.0, np.nan, 0.25], [1.0, 0.5, np.nan]], np.float32)

@@ -459,3 +459,20 @@ def test_a_capture_that_fails_before_it_runs_is_logged(tmp_path, caplog):
                  str(tmp_path / "out"), "--no-report", "--settle", "0"]) == 3
     errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
     assert any("notes.tif: failed before it ran" in m for m in errors), errors
+
+
+def test_the_surveys_default_tile_raises_no_note_on_a_small_capture(tmp_path, caplog):
+    """The survey's default tile (:data:`SURVEY_TILE`) is not one the user
+    asked for: a capture smaller than it runs as one tile without the note
+    ``detect --tile-size`` gives when a tile asked for exceeds the image; the
+    ledger keys the capture as before (by the survey's configuration)."""
+    references = write_reference(tmp_path / "reference", _scene())
+    write_capture(tmp_path / "incoming" / "cap.tif", _scene(), CaptureSpec((40, 60), (256, 256), seed=3, changes=2))
+    assert main(["survey", *map(str, references), "--captures", str(tmp_path / "incoming" / "*.tif"), "-o",
+                 str(tmp_path / "out"), "--no-report", "--settle", "0"]) == 0
+    notes = [r.getMessage() for r in caplog.records if "larger than the image" in r.getMessage()]
+    assert notes == []
+    store = read_store(tmp_path / "out" / "captures" / "cap.tif" / "changes.zarr")[1]
+    assert store["parameters"]["tile"] == 256 and store["tile_grid"]["tiles"] == [1, 1]
+    key = survey_module._parameters(survey_module.DetectConfig(tile=survey_module.SURVEY_TILE), (256, 256))
+    assert key["config"]["tile"] == survey_module.SURVEY_TILE

@@ -45,6 +45,14 @@ def test_vrt_jpeg2000_and_a_suffixless_geotiff_are_inputs(geotiff_pair_files, tm
     assert main(["-q", "detect", str(ref), str(not_a_raster), "-o", str(tmp_path / "x.zarr")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "notes.data: unsupported format '.data'" in err[0] and "GDAL" in err[0], err
+    # at the default log level too: the GDAL error rasterio logs (at INFO) before raising it is not printed
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "rsmb", "detect", str(ref), str(not_a_raster), "-o",
+                           str(tmp_path / "y.zarr")], capture_output=True, text=True, timeout=300)
+    err = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(err) == 1 and err[0].startswith("rsmb: error: "), proc.stderr
 
 
 def test_detect_takes_the_reference_set_a_survey_takes(tmp_path):
