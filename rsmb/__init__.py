@@ -13,6 +13,9 @@ imported on first use, so ``import rsmb.ops`` stays light.
 """
 
 import importlib
+import importlib.util
+import os
+import tempfile
 
 __all__ = ["detect", "survey", "synth", "evaluate", "report", "SurveyResult", "DetectConfig", "DetectResult", "Evaluation", "PairPaths",
            "__version__"]
@@ -50,3 +53,46 @@ def __getattr__(name):
 
 def __dir__():
     return sorted(set(globals()) | set(__all__))
+
+
+def _writable(path):
+    """Whether ``path`` can be written, or made in its nearest existing folder."""
+    while not os.path.exists(path):
+        parent = os.path.dirname(path)
+        if parent == path:
+            return False
+        path = parent
+    return os.path.isdir(path) and os.access(path, os.W_OK | os.X_OK)
+
+
+def _numba_cache(writable=_writable):
+    """Where numba keeps rsmb's compiled kernels (they are cached: ``cache=True``).
+
+    numba writes beside the kernels' source or in the user's cache folder; a
+    user who may write neither (a read-only install run by an account
+    without a writable home) would see every command fail on import.  Such a
+    user's kernels are cached in a folder of the temporary directory that
+    only they may write (``NUMBA_CACHE_DIR``; a fresh one per process where
+    that folder is not theirs alone).  A ``NUMBA_CACHE_DIR`` already set is
+    kept.  Runs before numba is imported: numba reads its settings then."""
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return
+    spec = importlib.util.find_spec("rsmb.ops")
+    sources = list(spec.submodule_search_locations or []) if spec is not None else []
+    user = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
+                        "numba")
+    if any(writable(os.path.join(s, "__pycache__")) for s in sources) or writable(user):
+        return
+    uid = os.getuid() if hasattr(os, "getuid") else None
+    path = os.path.join(tempfile.gettempdir(), f"rsmb-numba-cache-{uid if uid is not None else 'user'}")
+    try:
+        os.makedirs(path, mode=0o700, exist_ok=True)
+        st = os.lstat(path)
+        private = (uid is None or st.st_uid == uid) and os.path.isdir(path) and not os.path.islink(path) \
+            and not st.st_mode & 0o077
+    except OSError:
+        private = False
+    os.environ["NUMBA_CACHE_DIR"] = path if private else tempfile.mkdtemp(prefix="rsmb-numba-cache-")
+
+
+_numba_cache()
