@@ -69,13 +69,15 @@ def _floats(text, name, count=None, allow_auto=False, minimum=None, positive=Fal
         try:
             value = float(token)
         except ValueError:
-            raise click.BadParameter(f"expected comma-separated numbers, got {text!r}", param_hint=name) from None
+            raise click.BadParameter(f"expected comma-separated numbers, got {text!r}",
+                                     param_hint=f"'{name}'") from None
         if not np.isfinite(value) or (positive and value <= 0) or (minimum is not None and value < minimum):
             bound = "> 0" if positive else f">= {minimum:g}"
-            raise click.BadParameter(f"expected numbers {bound}, got {token}", param_hint=name)
+            raise click.BadParameter(f"expected numbers {bound}, got {token}", param_hint=f"'{name}'")
         values.append(value)
     if count is not None and len(values) not in (1, count):
-        raise click.BadParameter(f"expected 1 or {count} values (one per axis), got {len(values)}", param_hint=name)
+        raise click.BadParameter(f"expected 1 or {count} values (one per axis), got {len(values)}",
+                                 param_hint=f"'{name}'")
     return tuple(values) if count is None or len(values) == count else tuple(values) * count
 
 
@@ -194,7 +196,7 @@ def build_config(axes, half_width, step, search, shutter, solver, lambda_w, lamb
     unknown = [a for a in axes if a not in ops.POSE_AXES]
     if unknown or not axes or len(set(axes)) != len(axes):
         raise click.BadParameter(f"expected distinct names from {','.join(ops.POSE_AXES)}, got {','.join(axes) or 'none'}",
-                                 param_hint="--axes")
+                                 param_hint="'--axes'")
     reg = ops.RegistrationParams(
         axes=axes,
         half_width=_floats(half_width, "--half-width", len(axes), allow_auto=True, minimum=0),
@@ -212,5 +214,5 @@ def _slow_axes(text):
     if names == ("none",):
         return ()
     if not names or any(a not in ("rx", "ry") for a in names) or len(set(names)) != len(names):
-        raise click.BadParameter(f"expected rx, ry, rx,ry or none, got {text!r}", param_hint="--slow-axes")
+        raise click.BadParameter(f"expected rx, ry, rx,ry or none, got {text!r}", param_hint="'--slow-axes'")
     return names

@@ -126,7 +126,7 @@ def synth(out_dir, size, motion, shutter, exposure, scale, gain, changes, noise,
 
     shape = tuple(int(v) for v in _floats(size, "--size", minimum=32))
     if len(shape) != 2:
-        raise click.BadParameter("expected H,W", param_hint="--size")
+        raise click.BadParameter("expected H,W", param_hint="'--size'")
     ref, dist = run(out_dir, shape=shape, motion=motion, shutter=shutter, exposure=exposure, scale=scale,
                     gain=_floats(gain, "--gain", positive=True), changes=changes, noise=noise, seed=seed, fmt=fmt,
                     overwrite=overwrite)
@@ -175,7 +175,7 @@ def bench(sections, data, quick, sizes, workers, tile_size, json_path):
     chosen = tuple(x.strip() for x in sections.split(",") if x.strip())
     unknown = [x for x in chosen if x not in SECTIONS]
     if unknown:
-        raise click.BadParameter(f"unknown sections {unknown}; expected some of {SECTIONS}", param_hint="--sections")
+        raise click.BadParameter(f"unknown sections {unknown}; expected some of {SECTIONS}", param_hint="'--sections'")
     size_list = tuple(int(v) for v in _floats(sizes, "--sizes", minimum=64)) if sizes else None
     results = run_bench(sections=chosen, data=data, quick=quick, sizes=size_list, workers=workers, tile=tile_size)
     if json_path:
