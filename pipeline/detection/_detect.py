@@ -451,8 +451,9 @@ def detect(reference, distorted, output, *, config=None, scheduler="threads", wo
         try:
             own = open_runner(scheduler, workers=workers, worker_timeout=worker_timeout) if runner is None else None
             with own or contextlib.nullcontext(runner) as shared:
-                log.info("%s: %d x %d px, %d tiles of %d px, halo %d px, scheduler %s", plan.distorted.path,
-                         plan.shape[0], plan.shape[1], len(plan.grid), plan.grid.tile, plan.grid.halo,
+                log.info("%s: %d x %d px (width x height), %d tiles of %d px, halo %d px, scheduler %s",
+                         plan.distorted.path, plan.shape[1], plan.shape[0], len(plan.grid), plan.grid.tile,
+                         plan.grid.halo,
                          getattr(shared, "describe", lambda: scheduler)())
                 plan, run, found = _stages(_Counted(shared), group, run, plan, resume, timings, previews)
             timings["total_s"] = time.perf_counter() - t_start

@@ -262,11 +262,12 @@ def _plan(references, distorted, output, config):
     side = max(max(shape), 32)  # one tile of this side holds the image; a halo this wide reaches across it
     if tile > side:
         if config.tile:  # asked for, not the default
-            log.warning("note: tile size %d px is larger than the image (%d x %d): one tile of %d px", tile,
-                        *shape, side)
+            log.warning("note: tile size %d px is larger than the image (%d x %d px, width x height): one tile "
+                        "of %d px", tile, shape[1], shape[0], side)
         tile = side
     if halo > side:
-        log.warning("note: overlap %d px reaches beyond the image (%d x %d): using %d px", halo, *shape, side)
+        log.warning("note: overlap %d px reaches beyond the image (%d x %d px, width x height): using %d px", halo,
+                    shape[1], shape[0], side)
         halo = side
     grid = tiles.TileGrid(shape, tile, halo)
     # what runs, 'auto' resolved: the same run keys the same whichever way it was asked for

@@ -92,7 +92,7 @@ def write_report(store, out_dir=None, *, max_pixels=DEFAULT_MAX_PIXELS, overwrit
     out = _prepare_out_dir(store, out_dir, overwrite)
     shape = tuple(group["change_mask"].shape)
     factor = downsample_factor(shape, int(max_pixels))
-    log.info("report %s: %d x %d px, downsampled by %d", out, shape[0], shape[1], factor)
+    log.info("report %s: %d x %d px (width x height), downsampled by %d", out, shape[1], shape[0], factor)
     # drawn aside and moved in when complete: a report that fails (a damaged
     # store, a full disk) leaves the folder as it was, an earlier report included
     stage = _stage(out)
