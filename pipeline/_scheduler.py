@@ -225,8 +225,15 @@ class Runner:
                 return "dask.distributed (scheduler out of reach)"
         if self.scheduler == "synchronous":
             return "synchronous (1 worker)"
-        count = getattr(self.pool, "_max_workers", None) or self.workers or os.cpu_count() or 1
-        return f"{self.scheduler} ({count} workers)"
+        return f"{self.scheduler} ({self.local_workers()} workers)"
+
+    def local_workers(self):
+        """The workers of a local scheduler (its pool's, the count asked for,
+        or one per core); for a cluster, the count asked for or this
+        machine's cores, a guess that asks the scheduler nothing."""
+        if self.scheduler == "synchronous":
+            return 1
+        return getattr(self.pool, "_max_workers", None) or self.workers or os.cpu_count() or 1
 
     def _alone_for(self, workers_left):
         """Seconds since the last worker left (0 while some are there)."""

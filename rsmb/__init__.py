@@ -12,9 +12,11 @@ The subpackages hold the rest: :mod:`rsmb.ops` (numerical kernels),
 imported on first use, so ``import rsmb.ops`` stays light.
 """
 
+import atexit
 import importlib
 import importlib.util
 import os
+import shutil
 import tempfile
 
 __all__ = ["detect", "survey", "synth", "evaluate", "report", "SurveyResult", "DetectConfig", "DetectResult", "Evaluation", "PairPaths",
@@ -72,9 +74,11 @@ def _numba_cache(writable=_writable):
     user who may write neither (a read-only install run by an account
     without a writable home) would see every command fail on import.  Such a
     user's kernels are cached in a folder of the temporary directory that
-    only they may write (``NUMBA_CACHE_DIR``; a fresh one per process where
-    that folder is not theirs alone).  A ``NUMBA_CACHE_DIR`` already set is
-    kept.  Runs before numba is imported: numba reads its settings then."""
+    only they may write (``NUMBA_CACHE_DIR``): ``rsmb-numba-cache-<uid>``, or
+    the first of ``...-1`` to ``...-9`` that is theirs alone where another
+    user took it, else one of the process's own, removed at its exit.  A
+    ``NUMBA_CACHE_DIR`` already set is kept.  Runs before numba is
+    imported: numba reads its settings then."""
     if os.environ.get("NUMBA_CACHE_DIR"):
         return
     spec = importlib.util.find_spec("rsmb.ops")
@@ -84,15 +88,20 @@ def _numba_cache(writable=_writable):
     if any(writable(os.path.join(s, "__pycache__")) for s in sources) or writable(user):
         return
     uid = os.getuid() if hasattr(os, "getuid") else None
-    path = os.path.join(tempfile.gettempdir(), f"rsmb-numba-cache-{uid if uid is not None else 'user'}")
-    try:
-        os.makedirs(path, mode=0o700, exist_ok=True)
-        st = os.lstat(path)
-        private = (uid is None or st.st_uid == uid) and os.path.isdir(path) and not os.path.islink(path) \
-            and not st.st_mode & 0o077
-    except OSError:
-        private = False
-    os.environ["NUMBA_CACHE_DIR"] = path if private else tempfile.mkdtemp(prefix="rsmb-numba-cache-")
+    base = os.path.join(tempfile.gettempdir(), f"rsmb-numba-cache-{uid if uid is not None else 'user'}")
+    for path in [base] + [f"{base}-{k}" for k in range(1, 10)]:
+        try:
+            os.makedirs(path, mode=0o700, exist_ok=True)
+            st = os.lstat(path)
+        except OSError:
+            continue
+        if (uid is None or st.st_uid == uid) and os.path.isdir(path) and not os.path.islink(path) \
+                and not st.st_mode & 0o077:
+            os.environ["NUMBA_CACHE_DIR"] = path
+            return
+    path = tempfile.mkdtemp(prefix="rsmb-numba-cache-")  # all ten taken by others: this process's own
+    atexit.register(shutil.rmtree, path, True)
+    os.environ["NUMBA_CACHE_DIR"] = path
 
 
 _numba_cache()

@@ -45,16 +45,17 @@ def test_exit_handlers_registered_during_the_command_run_before_it_ends(tmp_path
 def test_numba_caches_where_the_user_may_write(tmp_path, monkeypatch):
     """A user who may write neither beside the kernels' source nor in a
     cache folder of their home gets a cache folder of the temporary
-    directory that only they may write (a fresh one where that folder is not
-    theirs alone); a ``NUMBA_CACHE_DIR`` already set, or a writable place,
-    is left to numba."""
+    directory that only they may write (the next of a series where that
+    folder is not theirs alone); a ``NUMBA_CACHE_DIR`` already set, or a
+    writable place, is left to numba."""
     import stat
     import tempfile
 
     import rsmb
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    monkeypatch.setenv("NUMBA_CACHE_DIR", "")  # recorded: the variable is as it was after the test
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
     rsmb._numba_cache(writable=lambda path: True)
     assert "NUMBA_CACHE_DIR" not in os.environ
     rsmb._numba_cache(writable=lambda path: False)
@@ -62,11 +63,13 @@ def test_numba_caches_where_the_user_may_write(tmp_path, monkeypatch):
     assert os.environ["NUMBA_CACHE_DIR"] == str(own)
     assert stat.S_IMODE(own.stat().st_mode) == 0o700
     monkeypatch.delenv("NUMBA_CACHE_DIR")
-    own.chmod(0o777)  # another user could have put kernels there
+    own.chmod(0o777)  # another user could have put kernels there: the next private name of the series
     rsmb._numba_cache(writable=lambda path: False)
-    fresh = os.environ["NUMBA_CACHE_DIR"]
-    assert fresh != str(own) and os.path.dirname(fresh) == str(tmp_path)
-    assert stat.S_IMODE(os.stat(fresh).st_mode) == 0o700
+    assert os.environ["NUMBA_CACHE_DIR"] == str(own) + "-1"
+    assert stat.S_IMODE(os.stat(str(own) + "-1").st_mode) == 0o700
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    rsmb._numba_cache(writable=lambda path: False)  # the same one the next time: its kernels are kept
+    assert os.environ["NUMBA_CACHE_DIR"] == str(own) + "-1"
     monkeypatch.setenv("NUMBA_CACHE_DIR", "/somewhere/chosen")
     rsmb._numba_cache(writable=lambda path: False)
     assert os.environ["NUMBA_CACHE_DIR"] == "/somewhere/chosen"

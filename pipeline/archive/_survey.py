@@ -263,7 +263,8 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         is ``failed`` in the result).
     """
     config = config or DetectConfig()
-    if config.tile is None:  # captures run side by side: one large tile each keeps the cores busy
+    fit_tile = config.tile is None  # not asked for: fitted to a capture smaller than it, without a note
+    if fit_tile:  # captures run side by side: one large tile each keeps the cores busy
         config = dataclasses.replace(config, tile=SURVEY_TILE)
     references = [os.path.abspath(r) for r in tiles.expand_references(references)]
     out = Path(out_dir).absolute()
@@ -281,7 +282,8 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         observed = {}  # each placed capture's mask, read for the history as the capture ends
         results = _night(ledger, found, out, references, night, config, settle,
                          dict(scheduler=scheduler, workers=workers, parallel=parallel,
-                              worker_timeout=worker_timeout, report=report, observed=observed), halt)
+                              worker_timeout=worker_timeout, report=report, observed=observed,
+                              fit_tile=fit_tile), halt)
         result = SurveyResult(results, *(sum(r.status == s for r in results) for s in ("done", "skipped", "failed")),
                               night=night, interrupted=halt.event.is_set())
         summary = _write_night(out, result)
@@ -460,7 +462,7 @@ def _run_all(ledger, todo, out, references, config, run, stop):
     interrupted = False
     try:
         futures = {driver.submit(_run_capture, capture, name, out, references, config, runner, products, slots,
-                                 st, stop, run["observed"]): (capture, name, run_id, why)
+                                 st, stop, run["observed"], run.get("fit_tile", False)): (capture, name, run_id, why)
                    for capture, name, run_id, why, st in todo}
         pending, count, deadline = set(futures), 0, None
         while pending:
@@ -549,7 +551,8 @@ def _fail(ledger, run_id, capture, exc, seconds):
     return CaptureResult(str(capture), "failed", reason, seconds=seconds or 0.0)
 
 
-def _run_capture(capture, name, out, references, config, runner, products, slots, st, stop, observed):
+def _run_capture(capture, name, out, references, config, runner, products, slots, st, stop, observed,
+                 fit_tile=False):
     """One capture, built aside and renamed into place: its store, products,
     thumbnail and report.  Runs in a driver thread; its tasks on ``runner``;
     its detection holds one of ``slots`` (a semaphore), its products and
@@ -557,11 +560,14 @@ def _run_capture(capture, name, out, references, config, runner, products, slots
     size or modification time now differs from ``st`` (its stat when it was
     hashed): it changed during its detection.  A placed capture's mask, read
     for the history here (beside the other captures' detection, not in the
-    night's serial end), goes into ``observed`` by its final path."""
+    night's serial end), goes into ``observed`` by its final path.  With
+    ``fit_tile`` (the survey's default tile, not asked for) a capture smaller
+    than the tile runs as one tile of its size, without the note a tile
+    asked for gives."""
     start = time.perf_counter()
     shape, header = tiles.probe_header(capture)
-    if config.tile == SURVEY_TILE:  # the survey's default, not asked for: no note on a smaller capture
-        config = dataclasses.replace(config, tile=min(SURVEY_TILE, max(max(shape), 32)))
+    if fit_tile:
+        config = dataclasses.replace(config, tile=min(config.tile, max(max(shape), 32)))
     if not tiles.is_georeferenced(header):
         raise InputError(f"{capture}: not georeferenced (a survey pairs captures with the reference by footprint)")
     aside = out / PARTIAL / "building" / name

@@ -300,7 +300,7 @@ def bench_real(data, workdir, *, workers=None):
             "false_change_fraction": s.changed_fraction, "parallax_fraction": s.parallax_pixels / distorted.size,
             "false_change_fraction_no_layers": off.changed_fraction,
             "clipped_fraction": max(s.clipped_reference, s.clipped_capture), "stage_cpu_s": s.timings["cpu_s"]}
-        _echo(f"real {name} ({distorted.shape[0]} x {distorted.shape[1]}): registration RMSE rsmb {rmse['rsmb']:.2f}, "
+        _echo(f"real {name} ({distorted.shape[1]} x {distorted.shape[0]} px): registration RMSE rsmb {rmse['rsmb']:.2f}, "
               f"ECC homography {rmse['ecc']:.2f}, ORB homography {rmse['orb']:.2f}, DIS dense flow {rmse['dis']:.2f} "
               f"(no registration {r['identity_rmse_255']:.2f}; 0..255 on the {100 * r['common_fraction']:.0f} % all "
               f"cover): rsmb {r['rsmb_over_best_homography']:.2f}x the better homography, {r['rsmb_over_dis']:.2f}x "

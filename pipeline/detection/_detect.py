@@ -178,7 +178,7 @@ def _change_masks(runner, run, plan, fused, hist, timings):
     t0 = time.perf_counter()
     shape, blocks, changes = plan.shape, plan.blocks, plan.config.changes
     threshold = ops.change_threshold(hist, params=changes)
-    groups = _tasks.block_groups(blocks)
+    groups = _tasks.block_groups(blocks, least=runner.runner.local_workers())
     labelled = [out for outs in runner.map("label", _tasks.label_task, [(run, g, shape, threshold, changes)
                                                                         for g in groups]) for out in outs]
     summaries = {s.index: s for s, _, _ in labelled}

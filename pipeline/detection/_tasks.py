@@ -276,24 +276,29 @@ def layer_components(group):
 GROUP_WIDTH = 4096
 
 
-def block_groups(blocks, width=GROUP_WIDTH):
+def block_groups(blocks, width=GROUP_WIDTH, least=2):
     """The blocks of ``blocks`` (a :class:`tiles.TileGrid`) in groups of
     neighbours along a block row whose cores span at most ``width`` px (one
-    block at least).  A label or mask task reads one window for its group:
-    zarr decodes a whole chunk for any part of it, so the halo of each block
-    alone would decode its neighbours' chunks again, once per block that
-    reads them.  The width bounds a task's memory as a block's size did."""
-    groups = []
-    for ty in range(blocks.grid_shape[0]):
-        row = [blocks[ty, tx] for tx in range(blocks.grid_shape[1])]
-        group = [row[0]]
-        for block in row[1:]:
-            if block.core[1].stop - group[0].core[1].start > width:
-                groups.append(group)
-                group = []
-            group.append(block)
-        groups.append(group)
-    return groups
+    block at least), narrower where that leaves fewer than ``least`` groups
+    (the workers: every one of them busy), down to a block each.  A label or
+    mask task reads one window for its group: zarr decodes a whole chunk for
+    any part of it, so the halo of each block alone would decode its
+    neighbours' chunks again, once per block that reads them.  The width
+    bounds a task's memory as a block's size did."""
+    while True:
+        groups = []
+        for ty in range(blocks.grid_shape[0]):
+            row = [blocks[ty, tx] for tx in range(blocks.grid_shape[1])]
+            group = [row[0]]
+            for block in row[1:]:
+                if block.core[1].stop - group[0].core[1].start > width:
+                    groups.append(group)
+                    group = []
+                group.append(block)
+            groups.append(group)
+        if len(groups) >= least or all(len(g) == 1 for g in groups):
+            return groups
+        width //= 2
 
 
 def _union(windows):

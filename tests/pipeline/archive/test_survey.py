@@ -465,7 +465,8 @@ def test_the_surveys_default_tile_raises_no_note_on_a_small_capture(tmp_path, ca
     """The survey's default tile (:data:`SURVEY_TILE`) is not one the user
     asked for: a capture smaller than it runs as one tile without the note
     ``detect --tile-size`` gives when a tile asked for exceeds the image; the
-    ledger keys the capture as before (by the survey's configuration)."""
+    ledger keys the capture as before (by the survey's configuration).  The
+    same size asked for gives the note."""
     references = write_reference(tmp_path / "reference", _scene())
     write_capture(tmp_path / "incoming" / "cap.tif", _scene(), CaptureSpec((40, 60), (256, 256), seed=3, changes=2))
     assert main(["survey", *map(str, references), "--captures", str(tmp_path / "incoming" / "*.tif"), "-o",
@@ -476,3 +477,8 @@ def test_the_surveys_default_tile_raises_no_note_on_a_small_capture(tmp_path, ca
     assert store["parameters"]["tile"] == 256 and store["tile_grid"]["tiles"] == [1, 1]
     key = survey_module._parameters(survey_module.DetectConfig(tile=survey_module.SURVEY_TILE), (256, 256))
     assert key["config"]["tile"] == survey_module.SURVEY_TILE
+    caplog.clear()  # the same size asked for: the note says it does not fit
+    assert main(["survey", *map(str, references), "--captures", str(tmp_path / "incoming" / "*.tif"), "-o",
+                 str(tmp_path / "asked"), "--no-report", "--settle", "0", "--tile-size", "1024"]) == 0
+    notes = [r.getMessage() for r in caplog.records if "larger than the image" in r.getMessage()]
+    assert len(notes) == 1 and "tile size 1024 px" in notes[0], notes

@@ -290,8 +290,9 @@ def test_task_arrays_write_empty_chunks_only_when_compressed(tmp_path):
 def test_label_and_mask_tasks_by_groups_of_blocks(tmp_path, monkeypatch):
     """The label and mask tasks take the blocks of a block row in groups
     (:func:`_tasks.block_groups`: every block once, neighbours of one row
-    spanning at most ``width`` px, a wider block alone) and read each
-    group's window once; the store is the same whatever the groups, a
+    spanning at most ``width`` px, a wider block alone, narrower groups
+    where there would be fewer than the workers) and read each group's
+    window once; the store is the same whatever the groups, a
     change across the seam between two groups included."""
     import functools
 
@@ -306,6 +307,12 @@ def test_label_and_mask_tasks_by_groups_of_blocks(tmp_path, monkeypatch):
         [(0, 0), (0, 1), (0, 2), (0, 3)], [(0, 4)], [(1, 0), (1, 1), (1, 2), (1, 3)], [(1, 4)]]
     assert [len(g) for g in _tasks.block_groups(blocks, width=100)] == [1] * 10  # a wide block alone
     assert [len(g) for g in _tasks.block_groups(tiles.TileGrid((8192, 8192), 4096, 64))] == [1, 1, 1, 1]
+    # never fewer groups than workers where the blocks allow: one block row of four, two workers, three
+    row = tiles.TileGrid((1024, 4096), 1024, 64)
+    assert [len(g) for g in _tasks.block_groups(row, least=1)] == [4]
+    assert [len(g) for g in _tasks.block_groups(row, least=2)] == [2, 2]
+    assert [len(g) for g in _tasks.block_groups(row, least=3)] == [1, 1, 1, 1]
+    assert [len(g) for g in _tasks.block_groups(tiles.TileGrid((4096, 4096), 1024, 64), least=2)] == [4] * 4
 
     pair = ops.synthesize_pair((512, 768), motion="inplane", changes=10, noise=0.002, seed=5)
     distorted = pair.distorted.copy()
