@@ -40,8 +40,6 @@ def configure_output(level):
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
     log.setLevel(level)  # basicConfig configures once per process; the level holds per invocation
     logging.getLogger("distributed").setLevel(max(level, logging.WARNING))
-    # rasterio logs at INFO each GDAL error it then raises (the command's one-line error says it)
-    logging.getLogger("rasterio").setLevel(max(level, logging.WARNING))
     _quiet_library_warnings()
 
 

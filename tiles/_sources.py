@@ -25,7 +25,7 @@ import numpy as np
 
 from rsmb.ops._errors import InputError, ParameterError, one_line
 
-from ._gdal import gdal_errors
+from ._gdal import gdal_errors, quiet_gdal
 from ._geo import GeoInfo
 from ._luminance import array_to_luminance, bands_to_luminance, default_alpha_index
 
@@ -341,14 +341,16 @@ def open_source(path: str) -> _Source:
 
 
 def _gdal_opens(path: str) -> bool:
-    """Whether GDAL opens the file ``path`` as a raster (its header only)."""
+    """Whether GDAL opens the file ``path`` as a raster (its header only).
+    GDAL's INFO line about a file it does not recognise is demoted to DEBUG
+    (:func:`quiet_gdal`): the caller's one-line error says it."""
     if os.path.isdir(path):
         return False
     import rasterio
     from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 
     try:
-        with warnings.catch_warnings():
+        with quiet_gdal(), warnings.catch_warnings():
             warnings.simplefilter("ignore", NotGeoreferencedWarning)
             with rasterio.open(path) as ds:
                 return ds.count > 0 and ds.width > 0 and ds.height > 0
