@@ -57,6 +57,13 @@ def _synth_defaults():
 SYNTH_DEFAULTS = _synth_defaults()
 
 
+def bad_option(message, option):
+    """click's error for a bad value of ``option`` (``--name``), the option
+    quoted as click quotes it in its own errors ("Invalid value for
+    '--name': ...")."""
+    return click.BadParameter(message, param_hint=f"'{option}'")
+
+
 def _floats(text, name, count=None, allow_auto=False, minimum=None, positive=False):
     """Comma-separated numbers (``auto`` -> None when allowed), one per axis or
     one for all; each at least ``minimum`` (above 0 with ``positive``)."""
@@ -69,15 +76,13 @@ def _floats(text, name, count=None, allow_auto=False, minimum=None, positive=Fal
         try:
             value = float(token)
         except ValueError:
-            raise click.BadParameter(f"expected comma-separated numbers, got {text!r}",
-                                     param_hint=f"'{name}'") from None
+            raise bad_option(f"expected comma-separated numbers, got {text!r}", name) from None
         if not np.isfinite(value) or (positive and value <= 0) or (minimum is not None and value < minimum):
             bound = "> 0" if positive else f">= {minimum:g}"
-            raise click.BadParameter(f"expected numbers {bound}, got {token}", param_hint=f"'{name}'")
+            raise bad_option(f"expected numbers {bound}, got {token}", name)
         values.append(value)
     if count is not None and len(values) not in (1, count):
-        raise click.BadParameter(f"expected 1 or {count} values (one per axis), got {len(values)}",
-                                 param_hint=f"'{name}'")
+        raise bad_option(f"expected 1 or {count} values (one per axis), got {len(values)}", name)
     return tuple(values) if count is None or len(values) == count else tuple(values) * count
 
 
@@ -195,8 +200,8 @@ def build_config(axes, half_width, step, search, shutter, solver, lambda_w, lamb
     axes = tuple(a.strip() for a in axes.split(",") if a.strip())
     unknown = [a for a in axes if a not in ops.POSE_AXES]
     if unknown or not axes or len(set(axes)) != len(axes):
-        raise click.BadParameter(f"expected distinct names from {','.join(ops.POSE_AXES)}, got {','.join(axes) or 'none'}",
-                                 param_hint="'--axes'")
+        raise bad_option(f"expected distinct names from {','.join(ops.POSE_AXES)}, got {','.join(axes) or 'none'}",
+                         "--axes")
     reg = ops.RegistrationParams(
         axes=axes,
         half_width=_floats(half_width, "--half-width", len(axes), allow_auto=True, minimum=0),
@@ -214,5 +219,5 @@ def _slow_axes(text):
     if names == ("none",):
         return ()
     if not names or any(a not in ("rx", "ry") for a in names) or len(set(names)) != len(names):
-        raise click.BadParameter(f"expected rx, ry, rx,ry or none, got {text!r}", param_hint="'--slow-axes'")
+        raise bad_option(f"expected rx, ry, rx,ry or none, got {text!r}", "--slow-axes")
     return names

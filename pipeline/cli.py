@@ -15,8 +15,8 @@ from rsmb import ops
 from rsmb.ops import RSMBError
 
 from ._options import SYNTH_DEFAULTS as _S
-from ._options import Number, _check_scheduler, _floats, build_config, registration_options, runtime_options, \
-    tile_option
+from ._options import Number, _check_scheduler, _floats, bad_option, build_config, registration_options, \
+    runtime_options, tile_option
 from .archive._ledger import SETTLE
 
 __all__ = ["main", "cli"]
@@ -124,7 +124,7 @@ def synth(out_dir, size, motion, shutter, exposure, scale, gain, changes, noise,
 
     shape = tuple(int(v) for v in _floats(size, "--size", minimum=32))
     if len(shape) != 2:
-        raise click.BadParameter("expected H,W", param_hint="'--size'")
+        raise bad_option("expected H,W", "--size")
     ref, dist = run(out_dir, shape=shape, motion=motion, shutter=shutter, exposure=exposure, scale=scale,
                     gain=_floats(gain, "--gain", positive=True), changes=changes, noise=noise, seed=seed, fmt=fmt,
                     overwrite=overwrite)
@@ -173,7 +173,7 @@ def bench(sections, data, quick, sizes, workers, tile_size, json_path):
     chosen = tuple(x.strip() for x in sections.split(",") if x.strip())
     unknown = [x for x in chosen if x not in SECTIONS]
     if unknown:
-        raise click.BadParameter(f"unknown sections {unknown}; expected some of {SECTIONS}", param_hint="'--sections'")
+        raise bad_option(f"unknown sections {unknown}; expected some of {SECTIONS}", "--sections")
     size_list = tuple(int(v) for v in _floats(sizes, "--sizes", minimum=64)) if sizes else None
     results = run_bench(sections=chosen, data=data, quick=quick, sizes=size_list, workers=workers, tile=tile_size)
     if json_path:

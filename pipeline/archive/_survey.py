@@ -45,7 +45,7 @@ from rsmb.ops import InputError, ParameterError, RSMBError
 from rsmb.ops._errors import one_line
 
 from ..detection._detect import detect
-from ..detection._plan import VERSION, DetectConfig
+from ..detection._plan import VERSION, DetectConfig, whole_image_side
 from ._history import MASK_NAME
 from ._ledger import LEDGER_NAME, SETTLE, FileStat, Ledger, RunKey
 from ._products import Here, ProductProcess, failure_reason
@@ -462,7 +462,7 @@ def _run_all(ledger, todo, out, references, config, run, stop):
     interrupted = False
     try:
         futures = {driver.submit(_run_capture, capture, name, out, references, config, runner, products, slots,
-                                 st, stop, run["observed"], run.get("fit_tile", False)): (capture, name, run_id, why)
+                                 st, stop, run["observed"], run["fit_tile"]): (capture, name, run_id, why)
                    for capture, name, run_id, why, st in todo}
         pending, count, deadline = set(futures), 0, None
         while pending:
@@ -567,7 +567,7 @@ def _run_capture(capture, name, out, references, config, runner, products, slots
     start = time.perf_counter()
     shape, header = tiles.probe_header(capture)
     if fit_tile:
-        config = dataclasses.replace(config, tile=min(config.tile, max(max(shape), 32)))
+        config = dataclasses.replace(config, tile=min(config.tile, whole_image_side(shape)))
     if not tiles.is_georeferenced(header):
         raise InputError(f"{capture}: not georeferenced (a survey pairs captures with the reference by footprint)")
     aside = out / PARTIAL / "building" / name

@@ -153,6 +153,12 @@ def default_tile(shape):
     return 1024 if min(shape) >= 4 * 1024 else 512
 
 
+def whole_image_side(shape):
+    """The side of one tile that holds an image of ``shape`` (at least the
+    smallest tile, 32 px): a tile or halo asked larger is cut to it."""
+    return max(max(shape), 32)
+
+
 def default_overlap(params, camera, shape, *, slow_reach=None):
     """Halo (px) that holds every displacement the wide search allows anywhere in
     the image, plus the row neighbourhood: the extreme poses of the search box
@@ -259,7 +265,7 @@ def _plan(references, distorted, output, config):
     config_overlap = config.overlap
     halo = config.overlap if config.overlap is not None else default_overlap(params, camera, shape)
     tile = config.tile or default_tile(shape)
-    side = max(max(shape), 32)  # one tile of this side holds the image; a halo this wide reaches across it
+    side = whole_image_side(shape)  # one tile of this side holds the image; a halo this wide reaches across it
     if tile > side:
         if config.tile:  # asked for, not the default
             log.warning("note: tile size %d px is larger than the image (%d x %d px, width x height): one tile "

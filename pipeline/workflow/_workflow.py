@@ -93,7 +93,7 @@ def _check_options(model):
     try:
         model.config()
     except click.BadParameter as exc:
-        key = (exc.param_hint or "").strip("'").lstrip("-").replace("-", "_")
+        key = (exc.param_hint or "").strip("'").lstrip("-").replace("-", "_")  # as _options.bad_option quotes it
         return f"{key}: {exc.message}"
     except ops.ParameterError as exc:
         return str(exc)

@@ -146,6 +146,10 @@ def test_bad_parameter_exits_2(tmp_path, small_pair_files, capsys):
     assert main(["detect", str(ref), str(dist), "-o", str(tmp_path / "p.zarr"), "--axes", "tx,warp"]) == 2
     assert "warp" in capsys.readouterr().err
     assert main(["detect", str(ref), str(dist), "-o", str(tmp_path / "p.zarr"), "--threshold", "otsu"]) == 2
+    # rsmb's own checks name the option as click's do
+    assert "Invalid value for '--threshold'" in capsys.readouterr().err
+    assert main(["detect", str(ref), str(dist), "-o", str(tmp_path / "p.zarr"), "--search", "20,abc"]) == 2
+    assert "Invalid value for '--search': expected comma-separated numbers" in capsys.readouterr().err
 
 
 def test_global_shutter_and_kapur_options(tmp_path):
