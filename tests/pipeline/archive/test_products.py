@@ -180,9 +180,17 @@ def test_ctrl_c_ends_the_products_process_with_the_night(tmp_path):
                             stderr=subprocess.PIPE)
     building = out / ".partial" / "building"
     deadline = time.monotonic() + 300
-    # the first COG of a capture's products in its folder aside: the child is writing them
-    while not list(building.rglob("change_mask_reference.tif")) and proc.poll() is None \
-            and time.monotonic() < deadline:
+
+    def writing():
+        """The first COG of a capture's products in its folder aside: the
+        child is writing them (the night removes scratch folders meanwhile:
+        one gone while it is searched is not there yet)."""
+        try:
+            return bool(list(building.rglob("change_mask_reference.tif")))
+        except FileNotFoundError:
+            return False
+
+    while not writing() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
     assert _products_processes(proc.pid)
     proc.send_signal(signal.SIGINT)
