@@ -14,6 +14,7 @@ from ._grid import Tile, TileGrid
 from ._pairing import Pairing, pair_images
 from ._ingest import (WindowStats, block_overview, check_stats, ingest_core, overview_cells, read_clipped,
                       read_padded)
+from ._chunkfiles import ChunkFiles, chunk_files
 from ._geo import GeoInfo, write_spatial_coords
 from ._sources import expand_references
 from ._io import (
@@ -62,6 +63,8 @@ __all__ = [
     "block_overview",
     "read_clipped",
     "read_padded",
+    "ChunkFiles",
+    "chunk_files",
     "GeoInfo",
     "ImageInfo",
     "Raster",

@@ -130,10 +130,12 @@ def _array(store, name):
     # the array's own metadata only: opening the group first reads its metadata and probes for zarr v2's.
     # A compressed array's chunks are written even when they equal the fill value: zarr would otherwise
     # compare each chunk with it first, a whole pass over the chunk (slowest on the uint8 masks) that costs
-    # more than compressing and writing the few that turn out empty.  Uncompressed scratch arrays keep
-    # the comparison: an empty chunk there (the reference's margin beyond the image) is a whole chunk's bytes.
+    # more than compressing and writing the few that turn out empty.  Uncompressed scratch arrays are
+    # read and written as their chunk files (:func:`tiles.chunk_files`: a window reads only the rows of
+    # each chunk it needs), which keep the comparison: an empty chunk there (the reference's margin
+    # beyond the image) is a whole chunk's bytes.
     array = zarr.open_array(store=store.path, path=name, mode="r+", zarr_format=3)
-    return array.with_config({"write_empty_chunks": True}) if array.compressors else array
+    return array.with_config({"write_empty_chunks": True}) if array.compressors else tiles.chunk_files(array)
 
 
 def cpu_timed(func, *args):
