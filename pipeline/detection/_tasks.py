@@ -7,6 +7,7 @@ arguments, so any dask scheduler (threads, processes, distributed) can run
 them."""
 
 import functools
+import threading
 import time
 from dataclasses import dataclass
 
@@ -125,8 +126,19 @@ class RunStore:
         return values if self.intensity is None else self.intensity.apply(values, name)
 
 
-@functools.lru_cache(maxsize=32)
 def _array(store, name):
+    """The array ``name`` of the run's store, opened once per process and
+    run (not once per thread that asks first): a store that gains its common
+    intensity scale is the same store."""
+    with _OPENING:
+        return _open_array(store.path, store.key, name)
+
+
+_OPENING = threading.Lock()
+
+
+@functools.lru_cache(maxsize=32)
+def _open_array(path, key, name):  # ``key``: the run, whose key fixes every array's layout
     # the array's own metadata only: opening the group first reads its metadata and probes for zarr v2's.
     # A compressed array's chunks are written even when they equal the fill value: zarr would otherwise
     # compare each chunk with it first, a whole pass over the chunk (slowest on the uint8 masks) that costs
@@ -134,7 +146,7 @@ def _array(store, name):
     # read and written as their chunk files (:func:`tiles.chunk_files`: a window reads only the rows of
     # each chunk it needs), which keep the comparison: an empty chunk there (the reference's margin
     # beyond the image) is a whole chunk's bytes.
-    array = zarr.open_array(store=store.path, path=name, mode="r+", zarr_format=3)
+    array = zarr.open_array(store=path, path=name, mode="r+", zarr_format=3)
     return array.with_config({"write_empty_chunks": True}) if array.compressors else tiles.chunk_files(array)
 
 

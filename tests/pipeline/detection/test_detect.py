@@ -287,6 +287,26 @@ def test_task_arrays_write_empty_chunks_only_when_compressed(tmp_path):
     assert np.isnan(_tasks._array(run, "scratch")[:4, :]).all() and (_tasks._array(run, "scratch")[4:, 4:] == 1).all()
 
 
+def test_task_arrays_open_once_per_run_and_scratch_as_chunk_files(tmp_path):
+    """Threads asking for an array of a run at once share one open array,
+    also once the run's store has its offsets and scale; another run on the
+    same path opens its own; uncompressed scratch is read as chunk files."""
+    import dataclasses
+    from concurrent.futures import ThreadPoolExecutor
+
+    from rsmb import tiles
+    from rsmb.pipeline.detection import _tasks
+
+    specs = {"scratch": tiles.ArraySpec((8, 8), "float32", (4, 4), ("y", "x"), float("nan"), compressed=False)}
+    tiles.create_result_store(tmp_path / "s.zarr", specs, {}, overwrite=False)
+    run = _tasks.RunStore(str(tiles.partial_path(tmp_path / "s.zarr")), "key-open-once")
+    with ThreadPoolExecutor(4) as pool:
+        arrays = list(pool.map(lambda _: _tasks._array(run, "scratch"), range(8)))
+    assert all(a is arrays[0] for a in arrays) and isinstance(arrays[0], tiles.ChunkFiles)
+    assert _tasks._array(dataclasses.replace(run, reference_offset=3), "scratch") is arrays[0]
+    assert _tasks._array(dataclasses.replace(run, key="another run"), "scratch") is not arrays[0]
+
+
 def test_label_and_mask_tasks_by_groups_of_blocks(tmp_path, monkeypatch):
     """The label and mask tasks take the blocks of a block row in groups
     (:func:`_tasks.block_groups`: every block once, neighbours of one row
