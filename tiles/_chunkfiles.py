@@ -1,9 +1,9 @@
 """Windows of an uncompressed zarr v3 array read and written as its chunk files.
 
 zarr decodes every chunk a window touches, whole, through its event loop: a
-tile task's halo needs a tenth of a neighbouring chunk of 4 MB and pays for
-all of it, and each chunk costs milliseconds of Python beside the tasks'
-own.  The run's scratch arrays (the ingested inputs, the labels, the per-tile
+tile task's halo needs a tenth of the chunks above and below its own (4 MB
+each) and pays for all of them, and each chunk costs milliseconds of Python
+beside the tasks' own.  The run's scratch arrays (the ingested inputs, the labels, the per-tile
 tables) are uncompressed, so their chunk files hold the values themselves:
 :class:`ChunkFiles` reads only the rows of each chunk file that a window
 needs and writes whole chunk files, in the layout zarr reads and writes (the
@@ -16,7 +16,7 @@ sharded, not on the local file system) is left to zarr: see
 
 import itertools
 import os
-import tempfile
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -29,13 +29,15 @@ def chunk_files(array):
     are its raw values (zarr v3, local store, regular chunks, no filter,
     compressor or sharding); else ``array`` itself."""
     from zarr.codecs import BytesCodec
+    from zarr.core.chunk_grids import RegularChunkGrid
     from zarr.storage import LocalStore
 
     metadata = array.metadata
+    codecs = getattr(metadata, "codecs", ())  # zarr v3 only; one codec: no filter, compressor or sharding
     plain = (getattr(metadata, "zarr_format", None) == 3 and isinstance(array.store, LocalStore)
-             and not array.compressors and not array.filters and isinstance(array.serializer, BytesCodec)
-             and (array.serializer.endian is None or array.serializer.endian.value == "little")
-             and type(metadata.chunk_grid).__name__ == "RegularChunkGrid")
+             and len(codecs) == 1 and isinstance(codecs[0], BytesCodec)
+             and (codecs[0].endian is None or codecs[0].endian.value == "little")
+             and isinstance(metadata.chunk_grid, RegularChunkGrid))
     return ChunkFiles(array) if plain else array
 
 
@@ -73,7 +75,7 @@ class ChunkFiles:
                 if step != 1:
                     raise IndexError(f"only slices of step 1 are supported, got {k}")
                 bounds.append((start, max(start, stop)))
-            elif isinstance(k, (int, np.integer)):
+            elif isinstance(k, (int, np.integer)) and not isinstance(k, (bool, np.bool_)):
                 i = int(k) + n if k < 0 else int(k)
                 if not 0 <= i < n:
                     raise IndexError(f"index {k} is out of bounds for axis {axis} of size {n}")
@@ -134,7 +136,7 @@ class ChunkFiles:
             whole = all(s.start == 0 and s.stop == min(c, n - i * c)
                         for s, i, c, n in zip(inside, index, self.chunks, self.shape))
             chunk = None if whole else self._read_rows(index, slice(0, self.chunks[0]))
-            chunk = np.full(self.chunks, self.fill_value, self._stored) if chunk is None else chunk.copy()
+            chunk = np.full(self.chunks, self.fill_value, self._stored) if chunk is None else chunk
             chunk[inside] = value[window]
             if self._empty(chunk):  # as zarr: a chunk of the fill value is no file
                 self._path(index).unlink(missing_ok=True)
@@ -142,19 +144,22 @@ class ChunkFiles:
                 self._write(index, chunk)
 
     def _empty(self, chunk):
+        """Whether ``chunk`` is the fill value throughout, as zarr tells: any NaN
+        for a NaN fill, else bit for bit (-0.0 is not 0.0)."""
         if self.dtype.kind in "fc" and np.isnan(self.fill_value):
             return bool(np.isnan(chunk).all())
-        return bool((chunk == self.fill_value).all())
+        bits = f"V{self._stored.itemsize}"
+        return bool((chunk.view(bits) == np.asarray(self.fill_value, self._stored).view(bits)).all())
 
     def _write(self, index, chunk):
         """Replace a chunk's file at once: a reader sees the old chunk or the new."""
         path = self._path(index)
         path.parent.mkdir(parents=True, exist_ok=True)
-        handle, partial = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".partial")
-        try:
-            with os.fdopen(handle, "wb") as file:
+        partial = path.with_name(f".{path.name}.{uuid.uuid4().hex}.partial")
+        try:  # created as zarr creates its files: mode 0666 less the umask
+            with os.fdopen(os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), "wb") as file:
                 file.write(np.ascontiguousarray(chunk, self._stored).data)
             os.replace(partial, path)
         except BaseException:
-            Path(partial).unlink(missing_ok=True)
+            partial.unlink(missing_ok=True)
             raise

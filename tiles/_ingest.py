@@ -76,8 +76,8 @@ def _stats(data):
 
 
 def read_padded(array, rows, cols):
-    """``array[rows, cols]`` of a 2-D array (zarr or numpy), NaN where the window
-    extends beyond the array."""
+    """``array[rows, cols]`` of a 2-D array (zarr, :class:`ChunkFiles` or
+    numpy), NaN where the window extends beyond the array."""
     out = np.full((rows.stop - rows.start, cols.stop - cols.start), np.nan, dtype=np.float32)
     r0, r1 = max(rows.start, 0), min(rows.stop, array.shape[0])
     c0, c1 = max(cols.start, 0), min(cols.stop, array.shape[1])

@@ -126,15 +126,15 @@ class RunStore:
         return values if self.intensity is None else self.intensity.apply(values, name)
 
 
+_OPENING = threading.Lock()
+
+
 def _array(store, name):
     """The array ``name`` of the run's store, opened once per process and
     run (not once per thread that asks first): a store that gains its common
     intensity scale is the same store."""
     with _OPENING:
         return _open_array(store.path, store.key, name)
-
-
-_OPENING = threading.Lock()
 
 
 @functools.lru_cache(maxsize=32)

@@ -1,8 +1,12 @@
 """Scratch arrays read and written as their chunk files agree with zarr, both ways."""
 
+import os
+import stat
+
 import numpy as np
 import pytest
 import zarr
+import zarr.codecs
 
 from rsmb import tiles
 
@@ -79,11 +83,29 @@ def test_chunk_files_index_as_numpy_does(tmp_path):
     files[:, 0, 1] = 5
     values[:, 0, 1] = 5
     assert np.array_equal(files[...], values)
-    for key in [(slice(0, 4, 2),), (6,), (0, 0, 0, 0), ([1, 2],)]:
+    for key in [(slice(0, 4, 2),), (6,), (0, 0, 0, 0), ([1, 2],), (True,)]:
         with pytest.raises(IndexError):
             files[key]
 
 
-def test_compressed_arrays_are_left_to_zarr(tmp_path):
-    array = _array(tmp_path / "a.zarr", (8, 8), (4, 4), "float32", 0.0)
+def test_chunk_files_keep_what_zarr_keeps(tmp_path):
+    """A chunk of -0.0 under a fill of 0.0 is written (zarr compares bits),
+    and chunk files are created as zarr creates its files (the umask's mode)."""
+    array = _array(tmp_path / "a.zarr", (4, 4), (2, 2), "float32", 0.0, compressors=None)
+    files = tiles.chunk_files(array)
+    files[:2, :2] = -0.0
+    files[2:, 2:] = 0.0
+    assert np.signbit(array[:2, :2]).all() and not np.signbit(array[2:, 2:]).any()
+    written = sorted(p for p in (tmp_path / "a.zarr").rglob("*") if p.is_file() and p.name != "zarr.json")
+    assert [p.relative_to(tmp_path / "a.zarr").as_posix() for p in written] == ["c/0/0"]
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(written[0].stat().st_mode) == 0o666 & ~umask
+
+
+@pytest.mark.parametrize("kw", [{}, {"compressors": None, "shards": (4, 4)},
+                                {"compressors": None, "filters": [zarr.codecs.TransposeCodec(order=(1, 0))]}])
+def test_other_arrays_are_left_to_zarr(tmp_path, kw):
+    """Compressed, sharded or filtered arrays: their chunk files are not their values."""
+    array = _array(tmp_path / "a.zarr", (8, 8), (2, 2) if "shards" in kw else (4, 4), "float32", 0.0, **kw)
     assert tiles.chunk_files(array) is array
