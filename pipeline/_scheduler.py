@@ -213,6 +213,14 @@ class Runner:
         # the runner (a night's captures share it), not one per map
         self._alone_since = None
         self._alone_lock = threading.Lock()
+        self.stopped = threading.Event()  # see stop()
+
+    def stop(self):
+        """Refuse every task not yet started, of every run on this runner
+        (their map raises :class:`ops.RunError`); running tasks finish.  For a
+        night whose running captures were abandoned: they start nothing
+        more beside the night's end."""
+        self.stopped.set()
 
     def describe(self):
         """The scheduler in use, for the log: ``threads (2 workers)``,
@@ -253,6 +261,8 @@ class Runner:
         argument_lists = list(argument_lists)
         if not argument_lists:
             return []
+        if self.stopped.is_set():
+            raise RunError(f"{label}: the runner was stopped")
         progress = _Progress(label, len(argument_lists)) if self.progress else None
         with _one_thread_each():
             if self.client is not None:
@@ -299,7 +309,7 @@ class Runner:
         if self.scheduler == "threads":
             # a task that fails makes dask raise while the others still run: the
             # caller's clean-up (removing a .partial store) must wait for them
-            tracked = kw["pool"] = _Tracked(self.pool or self._threads())
+            tracked = kw["pool"] = _Tracked(self.pool or self._threads(), self.stopped)
         elif self.pool is not None and self.scheduler != "synchronous":
             kw["pool"] = self.pool
         elif self.workers and self.scheduler != "synchronous":
@@ -347,14 +357,15 @@ def _local_get(scheduler):
 
 class _Tracked:
     """An executor that remembers what it was given, so that a failed map can
-    cancel the tasks not started and wait for the running ones."""
+    cancel the tasks not started and wait for the running ones; once
+    ``stopped`` is set (:meth:`Runner.stop`) what it is given fails at once."""
 
-    def __init__(self, pool):
-        self.pool, self.futures = pool, []
+    def __init__(self, pool, stopped):
+        self.pool, self.futures, self.stopped = pool, [], stopped
         self._max_workers = pool._max_workers
 
-    def submit(self, *args, **kwargs):
-        future = self.pool.submit(*args, **kwargs)
+    def submit(self, fn, *args, **kwargs):
+        future = self.pool.submit(_refused if self.stopped.is_set() else fn, *args, **kwargs)
         self.futures.append(future)
         return future
 
@@ -364,6 +375,10 @@ class _Tracked:
         for future in self.futures:
             future.cancel()
         concurrent.futures.wait(self.futures)
+
+
+def _refused(*args, **kwargs):
+    raise RunError("the runner was stopped")
 
 
 def _call(func, args, owner_pid, owned=True):

@@ -8,6 +8,7 @@ import contextlib
 import json
 import logging
 import sys
+from pathlib import Path
 
 import click
 
@@ -45,13 +46,19 @@ def configure_output(level):
 
 def _quiet_library_warnings():
     """PNG/JPEG/NPY inputs have no georeferencing by nature; rasterio's warning
-    about it says nothing to a user (and warning filters set per read are not
-    thread-safe, so it is silenced once here)."""
+    about it says nothing to a user.  Nor do numpy's all-NaN slice (rsmb
+    handles NaN rows where it takes NaN medians and maxima) and zarr's note
+    that consolidated metadata is not in the v3 specification (xarray reads
+    it).  Warning filters set around a call are not thread-safe (a night's
+    captures run in threads, and one capture's restored filters let
+    another's warnings through), so these are silenced once here."""
     import warnings
 
     from rasterio.errors import NotGeoreferencedWarning
 
     warnings.filterwarnings("ignore", category=NotGeoreferencedWarning)
+    warnings.filterwarnings("ignore", message="All-NaN slice encountered", category=RuntimeWarning)
+    warnings.filterwarnings("ignore", message=".*[Cc]onsolidated metadata.*")
 
 
 @cli.command()
@@ -269,6 +276,7 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes
 
     config = build_config(axes, half_width, step, search, shutter, solver, lambda_w, lambda_chi, threshold,
                           min_area, focal, tile_size, overlap, slow_axes=slow_axes, layers=not no_layers)
+    _check_captures_glob(captures, references)
     with _stopped_by_signals() as stop:
         result = run(references, captures, out_dir, config=config, scheduler=scheduler, workers=workers,
                      parallel=parallel, dry_run=dry_run, worker_timeout=worker_timeout, report=not no_report,
@@ -290,18 +298,74 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes
             click.echo(f"{result.done} done, {result.skipped} skipped, {result.failed} failed"
                        + (f"; {result.index}" if result.index else ""))
     if result.interrupted:
-        code = 128 + (stop.signum or 2)  # 130 on SIGINT, 143 on SIGTERM
         click.echo(f"rsmb: survey stopped by {stop.why}: finished captures recorded, the others run next night",
                    err=True)
-        _exit_now(code)
+        _exit_now(_interrupted_code(stop.signum))
     if result.failed:
         ctx.exit(3)
+
+
+def _check_captures_glob(captures, references):
+    """Refuse a ``--captures`` without a wildcard beside which REFERENCE files
+    lie: the shell expanded an unquoted glob, its first match became the
+    captures and the others references (the night would redo or skip them)."""
+    import glob
+
+    if glob.has_magic(captures):
+        return
+    folder = Path(captures).absolute().parent
+    beside = [r for r in references if Path(r).absolute().parent == folder]
+    if beside:
+        raise click.BadParameter(
+            f"{captures!r} has no wildcard and {len(beside)} REFERENCE file(s) lie beside it ({beside[0]}): "
+            f"was an unquoted glob expanded by the shell? Quote it: --captures '{folder}/*{Path(captures).suffix}'",
+            param_hint="'--captures'")
+
+
+#: The signal that interrupted the command (SIGINT or SIGTERM), for its exit code.
+_SIGNALLED = []
+
+
+def _interrupted_code(signum):
+    """130 after SIGINT, 143 after SIGTERM: 128 plus the signal's number."""
+    import signal
+
+    return 128 + int(signum or signal.SIGINT)
+
+
+@contextlib.contextmanager
+def _interruptible():
+    """SIGINT and SIGTERM interrupt the command at once (KeyboardInterrupt:
+    its cleanup runs, locks are released, partial outputs removed), the
+    signal recorded for the exit code; the handlers before are put back
+    after.  Outside the main thread (a program calling :func:`main` from a
+    thread) signals are left as they are."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        _SIGNALLED.append(signum)
+        raise KeyboardInterrupt
+
+    saved = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, previous in saved.items():
+            signal.signal(s, previous)
 
 
 @contextlib.contextmanager
 def _stopped_by_signals():
     """A night's stop (pipeline.archive._survey._Stop) that SIGINT and SIGTERM
-    set while the survey runs (the handlers before are put back after)."""
+    set while a night listens for it (``stop.listening``, set by the survey
+    while its night runs); a second signal, or one while no night listens (a
+    workflow's other steps), interrupts at once.  The handlers before are put
+    back after."""
     import signal
     import threading
 
@@ -313,7 +377,8 @@ def _stopped_by_signals():
         return
 
     def handler(signum, frame):
-        if stop.event.is_set():  # a second signal: stop now
+        _SIGNALLED.append(signum)
+        if stop.event.is_set() or not stop.listening:  # a second signal, or no night to stop in order: now
             raise KeyboardInterrupt
         stop.signum = signum
         stop.event.set()
@@ -328,8 +393,19 @@ def _stopped_by_signals():
             signal.signal(s, previous)
 
 
+def _now(code):
+    """``code``, returned when this thread is the only one; else the process
+    exits with it at once, without waiting for the threads of the work it
+    interrupted (a night's detections would hold the interpreter's exit)."""
+    import threading
+
+    if threading.active_count() > 1:
+        _exit_now(code)
+    return code
+
+
 def _exit_now(code):
-    """Exit with ``code`` without waiting for the tasks an interrupted night
+    """Exit with ``code`` without waiting for the tasks an interrupted run
     abandoned (their threads would hold the interpreter's exit)."""
     import os
     import threading
@@ -351,7 +427,8 @@ def run_command(ctx, workflow, scheduler, check):
     """Run a nightly WORKFLOW file (YAML): synth, detect, evaluate, report and survey steps.
 
     Exit code 3 when a step failed, a survey step included when some of its
-    captures failed (the summary says which and why)."""
+    captures failed (the summary says which and why); 130 or 143 when
+    stopped by Ctrl-C or SIGTERM (a survey step's night stops in order)."""
     from .workflow._workflow import check_inputs, load_workflow, run_workflow
 
     if check:
@@ -361,10 +438,15 @@ def run_command(ctx, workflow, scheduler, check):
             click.echo(f"step {number} {kind}")
         click.echo(f"{flow.path}: valid, {len(flow.steps)} steps; summary would go to {flow.summary}")
         return
-    results = run_workflow(workflow, scheduler=scheduler)
+    with _stopped_by_signals() as stop:
+        results = run_workflow(workflow, scheduler=scheduler, stop=stop)
     for step in results:
-        why = f": {step['reason']}" if step["status"] == "failed" else ""
+        why = f": {step['reason']}" if step["status"] in ("failed", "interrupted") else ""
         click.echo(f"step {step['step']} {step['kind']}: {step['status']} ({step['seconds']:.1f} s){why}")
+    if stop.event.is_set():
+        click.echo(f"rsmb: workflow stopped by {stop.why}: its survey recorded what finished; the summary says "
+                   f"which steps ran", err=True)
+        _exit_now(_interrupted_code(stop.signum))
     if any(step["status"] == "failed" for step in results):
         ctx.exit(3)
 
@@ -379,16 +461,22 @@ def main(argv=None):
     from ._scheduler import configure_process
 
     configure_process()  # the rsmb command is its own process: its settings are rsmb's
+    _SIGNALLED.clear()
     try:
-        code = cli.main(args=argv, prog_name="rsmb", standalone_mode=False)
+        with _interruptible():
+            code = cli.main(args=argv, prog_name="rsmb", standalone_mode=False)
     except click.exceptions.Exit as exc:
         return exc.exit_code
     except click.ClickException as exc:  # bad options and arguments: click's own three lines made one
         click.echo(f"rsmb: error: {_one_line(exc.format_message())}", err=True)
         return 2 if isinstance(exc, click.UsageError) else exc.exit_code
     except (click.exceptions.Abort, KeyboardInterrupt):
-        click.echo("rsmb: interrupted", err=True)
-        return 1
+        import signal
+
+        log.debug("interrupted", exc_info=True)
+        signum = _SIGNALLED[-1] if _SIGNALLED else signal.SIGINT  # Ctrl-C at a prompt: click's Abort
+        click.echo(f"rsmb: interrupted by {signal.Signals(signum).name}", err=True)
+        return _now(_interrupted_code(signum))
     except RSMBError as exc:  # bad input or option: 2; a run that could not go on (solver, workers): 1
         click.echo(f"rsmb: error: {_one_line(exc)}", err=True)
         return 2 if isinstance(exc, (ops.InputError, ops.ParameterError)) else 1

@@ -280,21 +280,26 @@ def survey(references, captures, out_dir, *, config=None, scheduler="threads", w
         _migrate_layout(out, ledger)
         halt = stop if isinstance(stop, _Stop) else _Stop(stop)
         observed = {}  # each placed capture's mask, read for the history as the capture ends
-        results = _night(ledger, found, out, references, night, config, settle,
-                         dict(scheduler=scheduler, workers=workers, parallel=parallel,
-                              worker_timeout=worker_timeout, report=report, observed=observed,
-                              fit_tile=fit_tile), halt)
-        result = SurveyResult(results, *(sum(r.status == s for r in results) for s in ("done", "skipped", "failed")),
-                              night=night, interrupted=halt.event.is_set())
-        summary = _write_night(out, result)
-        # the runner is closed: no task of a failed capture can still be writing its scratch
-        shutil.rmtree(out / PARTIAL, ignore_errors=True)
-        from ._night_end import close_night
-        from ._survey_html import write_index
+        halt.listening = True  # a first signal from here on stops the night in order, its end included
+        try:
+            results = _night(ledger, found, out, references, night, config, settle,
+                             dict(scheduler=scheduler, workers=workers, parallel=parallel,
+                                  worker_timeout=worker_timeout, report=report, observed=observed,
+                                  fit_tile=fit_tile), halt)
+            result = SurveyResult(results, *(sum(r.status == s for r in results)
+                                             for s in ("done", "skipped", "failed")),
+                                  night=night, interrupted=halt.event.is_set())
+            summary = _write_night(out, result)
+            # the runner is closed: no task of a failed capture can still be writing its scratch
+            shutil.rmtree(out / PARTIAL, ignore_errors=True)
+            from ._night_end import close_night
+            from ._survey_html import write_index
 
-        record = close_night(out, ledger, night, references, observed=observed)  # history, STAC catalog, map
-        index = write_index(out, ledger.captures(), prefix=_fixed_prefix(captures).absolute(), record=record)
-    return dataclasses.replace(result, summary=str(summary), index=str(index))
+            record = close_night(out, ledger, night, references, observed=observed)  # history, STAC catalog, map
+            index = write_index(out, ledger.captures(), prefix=_fixed_prefix(captures).absolute(), record=record)
+        finally:
+            halt.listening = False  # what runs after the night (a workflow's next step) is interrupted at once
+    return dataclasses.replace(result, summary=str(summary), index=str(index), interrupted=halt.event.is_set())
 
 
 class _Fingerprints:
@@ -428,6 +433,7 @@ class _Stop:
         self.abandoned = threading.Event()
         self.grace = grace
         self.signum = None
+        self.listening = False  # a night is running that stops in order (else a signal interrupts at once)
 
     @property
     def why(self):
@@ -472,6 +478,7 @@ def _run_all(ledger, todo, out, references, config, run, stop):
                 pending -= _cancel_queued(ledger, futures, pending, stop, results)
             if deadline is not None and time.monotonic() >= deadline:
                 _abandon(ledger, futures, pending, stop, results)
+                runner.stop()  # their detections start no task more beside the night's end
                 break
             done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
             for future in done:
@@ -480,15 +487,23 @@ def _run_all(ledger, todo, out, references, config, run, stop):
     except BaseException:
         driver.shutdown(wait=False, cancel_futures=True)
         stop.abandoned.set()
+        runner.stop()
         products.kill()
         raise
     if interrupted:
-        driver.shutdown(wait=False, cancel_futures=True)  # the runner and its tasks end with the process
+        driver.shutdown(wait=False, cancel_futures=True)
+        # the runner and its tasks end with the process: kept from the garbage collector, whose closing
+        # of the runner's context would wait for its running tasks here
+        _LEFT_RUNNING.append(stack)
         products.kill()  # the captures it could be writing are abandoned: nothing of theirs is placed
     else:
         driver.shutdown(wait=True)
         stack.close()
     return results
+
+
+#: The runners of interrupted nights (their contexts), left open to the process's exit.
+_LEFT_RUNNING = []
 
 
 def _cancel_queued(ledger, futures, pending, stop, results):

@@ -233,6 +233,15 @@ def _check_detect(model, made, overwrite):
     check_outputs(model.output, None if model.geotiff is None or made(model.geotiff) else model.geotiff, overwrite)
 
 
+class StepInterrupted(Exception):
+    """A survey step whose night was stopped (SIGINT or SIGTERM): it recorded
+    what finished; ``result`` is the step's result all the same."""
+
+    def __init__(self, message, result):
+        super().__init__(message)
+        self.result = result
+
+
 class StepFailed(RSMBError):
     """A step that ran to its end with a failure to report (a survey whose
     night had failed captures): the message is the reason, ``result`` the
@@ -243,24 +252,28 @@ class StepFailed(RSMBError):
         self.result = result
 
 
-def _survey_step(model, scheduler):
-    """Run a survey step; its result holds the night's counts, where its
-    summary and index are, and the reason of every failed capture."""
+def _survey_step(model, scheduler, stop=None):
+    """Run a survey step (``stop``: as :func:`~rsmb.pipeline.archive._survey.survey`'s);
+    its result holds the night's counts, where its summary and index are,
+    and the reason of every failed capture."""
     from ..archive._survey import survey
 
     night = survey(model.references, model.captures, model.output, config=model.config(), scheduler=scheduler,
                    workers=model.workers, parallel=model.parallel, worker_timeout=model.worker_timeout,
-                   report=model.report, settle=model.settle)
+                   report=model.report, settle=model.settle, stop=stop)
     result = {"output": str(model.output), "done": night.done, "skipped": night.skipped, "failed": night.failed,
               "summary": night.summary, "index": night.index,
               "failed_captures": {c.capture: c.reason for c in night.captures if c.status == "failed"}}
+    if night.interrupted:
+        raise StepInterrupted(f"the night was stopped ({stop.why}): finished captures recorded, the others run "
+                              f"next night; see {night.summary}", result)
     if night.failed:
         raise StepFailed(f"{night.failed} of {len(night.captures)} captures failed (the others finished); "
                          f"see {night.summary}", result)
     return result
 
 
-def _run_step(kind, model, workflow, scheduler):
+def _run_step(kind, model, workflow, scheduler, stop):
     from ..detection._detect import detect
     from .._evaluate import evaluate
     from ..report._report import write_report
@@ -279,40 +292,53 @@ def _run_step(kind, model, workflow, scheduler):
     if kind == "evaluate":
         return evaluate(model.store, model.truth).as_dict()
     if kind == "survey":
-        return _survey_step(model, scheduler)
+        return _survey_step(model, scheduler, stop)
     return {"report": str(write_report(model.store, model.out_dir, overwrite=True))}
 
 
-def run_workflow(path, *, scheduler=None):
+def run_workflow(path, *, scheduler=None, stop=None):
     """Validate a workflow file, then run its steps in order.
 
     A failed step is recorded with its reason; the remaining steps run only
-    with ``keep_going: true``.  The summary is written whatever happens.
+    with ``keep_going: true``.  A survey step stopped by ``stop`` (as
+    :func:`~rsmb.pipeline.archive._survey.survey`'s: the command sets it on
+    SIGINT and SIGTERM), or any step interrupted (KeyboardInterrupt, raised
+    again), is recorded ``interrupted`` and no step runs after it.  The
+    summary is written whatever happens.
 
     Returns
     -------
     list of dict
-        Per step: ``step``, ``kind``, ``status`` ("done", "failed" or "not
-        run"), ``seconds``, and ``result`` or ``reason`` (both for a survey
-        step with failed captures).
+        Per step: ``step``, ``kind``, ``status`` ("done", "failed",
+        "interrupted" or "not run"), ``seconds``, and ``result`` or
+        ``reason`` (both for a survey step with failed captures or stopped).
     """
     workflow = load_workflow(path)
     check_inputs(workflow)
     scheduler = scheduler or workflow.scheduler
     results = []
-    failed = False
+    failed = stopped = False
     try:
         for number, (kind, model) in enumerate(workflow.steps, 1):
             record = {"step": number, "kind": kind}
             results.append(record)
-            if failed and not workflow.keep_going:
+            if stopped or (failed and not workflow.keep_going):
                 record.update(status="not run", seconds=0.0)
                 continue
             log.info("%s: step %d/%d: %s", workflow.name, number, len(workflow.steps), kind)
             start = time.perf_counter()
             try:
-                record["result"] = _run_step(kind, model, workflow, scheduler)
+                record["result"] = _run_step(kind, model, workflow, scheduler, stop)
                 record["status"] = "done"
+            except StepInterrupted as exc:
+                stopped = True
+                record.update(status="interrupted", reason=str(exc), result=exc.result)
+            except KeyboardInterrupt:
+                record.update(status="interrupted", reason="interrupted before it finished (a signal)",
+                              seconds=time.perf_counter() - start)
+                for later, (other, _) in enumerate(workflow.steps[number:], number + 1):
+                    results.append({"step": later, "kind": other, "status": "not run", "seconds": 0.0})
+                raise
             except (RSMBError, OSError) as exc:
                 failed = True
                 record.update(status="failed", reason=" ".join(str(exc).split()))

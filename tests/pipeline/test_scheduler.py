@@ -190,3 +190,27 @@ def test_the_command_process_gets_a_short_switch_interval_a_library_caller_keeps
             "print(sys.getswitchinterval() == SWITCH_INTERVAL < 0.005)\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert proc.stdout.strip() == "True"
+
+
+def test_a_stopped_runner_starts_no_task_more():
+    """Runner.stop (a night's abandoned captures): a map started after it
+    raises, and the tasks a running map has not started yet fail instead of
+    running; the running ones finish."""
+    from rsmb.ops import RunError
+
+    started = []
+
+    def task(k):
+        started.append(k)
+        if k == 0:
+            runner.stop()
+            time.sleep(0.2)  # the others wait for a worker meanwhile
+        return k
+
+    with _scheduler.open_runner("threads", workers=1, shared=True, progress=False) as runner:
+        with pytest.raises(RunError, match="stopped"):
+            runner.map("t", task, [(k,) for k in range(4)])
+        assert started == [0]
+        with pytest.raises(RunError, match="stopped"):
+            runner.map("t", task, [(0,)])
+        assert started == [0]

@@ -370,6 +370,71 @@ def test_ctrl_c_stops_within_seconds_and_nothing_finished_is_redone(archive, tmp
     assert {n for n, s in by.items() if s == "done"} == {f"c{k:02d}.tif" for k in range(6)} - done
 
 
+def test_a_workflow_stopped_records_its_night_and_its_steps(archive, tmp_path):
+    """SIGINT to ``rsmb run`` during its survey step once a capture is done:
+    the night stops in order as ``rsmb survey``'s does (its summary written),
+    the workflow's summary says the step was interrupted and the next did not
+    run, and the command exits 130 with one line; then SIGTERM during a
+    detect step (no night to stop in order) interrupts it at once: 143, the
+    step recorded interrupted."""
+    import yaml
+
+    _, scene, references = archive
+    night = tmp_path / "night"
+    rng = np.random.default_rng(6)
+    for k in range(6):
+        origin = tuple(int(v) for v in rng.integers(40, 300, size=2))
+        _capture(night / f"c{k:02d}.tif", scene, origin, seed=300 + k)
+    survey = {"references": [str(r) for r in references], "captures": str(night / "*.tif"),
+              "output": str(tmp_path / "out"), "parallel": 1, "report": False, "settle": 0, "tile_size": 160}
+    flow = tmp_path / "night.yaml"
+    later = {"synth": {"out_dir": str(tmp_path / "later"), "size": 64}}
+    flow.write_text(yaml.safe_dump({"name": "w", "steps": [{"survey": survey}, later]}))
+    proc = subprocess.Popen([sys.executable, "-m", "rsmb.pipeline.cli", "-q", "run", str(flow)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    _wait_for(lambda: any(s == "done" for _, s, _ in _ledger_rows(tmp_path / "out")) or proc.poll() is not None, 300)
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr.decode()
+    assert "workflow stopped by SIGINT" in stderr.decode()
+    steps = json.loads((tmp_path / "w.summary.json").read_text())
+    assert [s["status"] for s in steps] == ["interrupted", "not run"]
+    assert steps[0]["result"]["summary"] == str(sorted((tmp_path / "out" / "nights").glob("*.json"))[-1])
+    assert _summary(tmp_path / "out")["done"] >= 1
+
+    pair = ops.synthesize_pair((512, 512), seed=2)
+    np.save(tmp_path / "ref.npy", pair.reference)
+    np.save(tmp_path / "dist.npy", pair.distorted)
+    detect = {"reference": str(tmp_path / "ref.npy"), "distorted": str(tmp_path / "dist.npy"),
+              "output": str(tmp_path / "d.zarr"), "tile_size": 64}
+    flow.write_text(yaml.safe_dump({"name": "w", "steps": [{"detect": detect}, later]}))
+    proc = subprocess.Popen([sys.executable, "-m", "rsmb.pipeline.cli", "-q", "run", str(flow)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    _wait_for(lambda: (tmp_path / "d.zarr.partial" / "work").is_dir() or proc.poll() is not None, 300)
+    proc.send_signal(signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 143, stderr.decode()
+    assert "interrupted by SIGTERM" in stderr.decode()
+    steps = json.loads((tmp_path / "w.summary.json").read_text())
+    assert [s["status"] for s in steps] == ["interrupted", "not run"]
+    assert not (tmp_path / "d.zarr.lock").exists()
+
+
+def test_an_unquoted_captures_glob_is_refused(archive, tmp_path, capsys):
+    """The shell expanded ``--captures dir/*.tif``: its first match became the
+    glob, the others references.  Exit 2 with one line, nothing written."""
+    _, scene, references = archive
+    night = tmp_path / "night"
+    for k in range(3):
+        _capture(night / f"c{k}.tif", scene, (60 + 40 * k, 80), seed=400 + k)
+    out = tmp_path / "out"
+    code = main(["-q", "survey", *map(str, references), *map(str, sorted(night.glob("*.tif"))[1:]),
+                 "--captures", str(night / "c0.tif"), "-o", str(out)])
+    assert code == 2 and not out.exists()
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "unquoted glob" in err and f"--captures '{night}/*.tif'" in err
+
+
 def test_every_worker_lost_ends_the_night_within_the_timeout(archive, tmp_path, dask_cluster):
     """The only worker of a tcp:// cluster killed mid-night: exit 1 with one
     line within --worker-timeout plus a few seconds, once for the night (not

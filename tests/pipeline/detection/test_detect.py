@@ -349,3 +349,28 @@ def test_label_and_mask_tasks_by_groups_of_blocks(tmp_path, monkeypatch):
     assert (stores[512]["change_mask"][200:216, 248:264] == 1).all()
     for name, values in stores[256].items():
         assert np.array_equal(values, stores[512][name], equal_nan=values.dtype.kind == "f"), name
+
+
+@pytest.mark.parametrize("signum, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_detect_stopped_by_a_signal_keeps_what_resume_continues(tmp_path, signum, code):
+    """SIGINT or SIGTERM during a detect: one line naming the signal, exit
+    128 + its number, the store's lock released, the partial store kept, and
+    ``--resume`` finishes it."""
+    from rsmb.pipeline.cli import main
+
+    pair = ops.synthesize_pair((512, 512), seed=2)
+    np.save(tmp_path / "ref.npy", pair.reference)
+    np.save(tmp_path / "dist.npy", pair.distorted)
+    args = ["-q", "detect", str(tmp_path / "ref.npy"), str(tmp_path / "dist.npy"), "-o", str(tmp_path / "o.zarr"),
+            "--tile-size", "64"]
+    proc = subprocess.Popen([sys.executable, "-m", "rsmb.pipeline.cli", *args], stderr=subprocess.PIPE)
+    done = tmp_path / "o.zarr.partial" / "work" / "tile_summary"  # a tile registered: a run --resume continues
+    deadline = time.time() + 120
+    while not any(p.is_file() for p in done.rglob("c/*/*/*")) and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signum)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == code, stderr.decode()
+    assert stderr.decode().strip() == f"rsmb: interrupted by {signal.Signals(signum).name}"
+    assert not (tmp_path / "o.zarr.lock").exists() and (tmp_path / "o.zarr.partial").is_dir()
+    assert main([*args, "--resume"]) == 0
