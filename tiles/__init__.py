@@ -28,7 +28,7 @@ from ._io import (
     write_geotiff,
 )
 from ._json import jsonable
-from ._lock import FileLock, LockBusy, LockError, acquire_lock
+from ._lock import FileLock, LockBusy, LockError, acquire_lock, lock_holder
 from ._luminance import as_float01
 from ._products import ChangePolygon, change_polygons, write_changes_gpkg, write_cog
 from ._stitch import TileLabels, merge_tile_labels
@@ -99,5 +99,6 @@ __all__ = [
     "LockBusy",
     "LockError",
     "acquire_lock",
+    "lock_holder",
     "expand_references",
 ]

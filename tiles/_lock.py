@@ -25,7 +25,7 @@ from pathlib import Path
 
 from rsmb.ops._errors import InputError, one_line
 
-__all__ = ["FileLock", "LockBusy", "LockError", "acquire_lock"]
+__all__ = ["FileLock", "LockBusy", "LockError", "acquire_lock", "lock_holder"]
 
 _BUSY = {errno.EWOULDBLOCK, errno.EAGAIN}
 _NO_LOCKS = {errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS}
@@ -71,6 +71,28 @@ def _holder(path: Path) -> str:
         return " ".join(path.read_text(errors="replace").split()[:8])
     except OSError:
         return ""
+
+
+def lock_holder(path: str | os.PathLike) -> str | None:
+    """Who holds the lock ``path`` now (its file's text, such as ``pid 123``,
+    or ``"another process"``), or None when nobody does, it does not exist or
+    the platform has no ``flock``.  Read-only: the file is neither created
+    nor written."""
+    try:
+        import fcntl
+    except ImportError:
+        return None
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError as exc:
+        return (_holder(Path(path)) or "another process") if exc.errno in _BUSY else None
+    finally:
+        os.close(fd)  # closing the descriptor releases a lock taken
+    return None
 
 
 def acquire_lock(path: str | os.PathLike, *, what: str, remove: bool = False) -> FileLock | None:

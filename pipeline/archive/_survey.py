@@ -379,6 +379,11 @@ def _dry_run(found, out, references, config, settle):
     """What would run, and why (new, changed, retry, settling, skip):
     read-only (the ledger, if there is one; no fingerprint is saved)."""
     ledger = Ledger(out / LEDGER_NAME, readonly=True) if (out / LEDGER_NAME).exists() else None
+    # a night running on the folder now: its running captures are not interrupted ones
+    holder = tiles.lock_holder(out / f"{LEDGER_NAME}.lock")
+    if holder:
+        log.warning("survey: %s: a night is running on this folder now (%s): this dry run shows what a night "
+                    "started after it would do", out, holder)
     results = []
     try:
         for capture, name, what, detail in _decide_all(ledger, found, references, config, settle):
@@ -387,7 +392,11 @@ def _dry_run(found, out, references, config, settle):
             elif what == "fail":
                 results.append(CaptureResult(str(capture), "would run", f"and fail: {one_line(detail[0])}"))
             else:
-                results.append(CaptureResult(str(capture), f"would {what}", detail[1].reason,
+                decision = detail[1]
+                reason = decision.reason
+                if holder and decision.previous is not None and decision.previous.status == "running":
+                    reason = f"running now in the night on this folder ({holder}), started {decision.previous.started}"
+                results.append(CaptureResult(str(capture), f"would {what}", reason,
                                              output=str(out / CAPTURES / name)))
     finally:
         if ledger:

@@ -53,3 +53,18 @@ def test_a_folder_that_cannot_be_written(tmp_path, monkeypatch):
     monkeypatch.setattr(os, "open", read_only)
     with pytest.raises(LockError, match="cannot create the lock file .*Read-only file system"):
         acquire_lock(tmp_path / "x.lock", what="rsmb test")
+
+
+def test_lock_holder_reads_without_taking_or_writing(tmp_path):
+    """Who holds a lock, told without creating, writing or keeping it."""
+    from rsmb.tiles import acquire_lock, lock_holder
+
+    path = tmp_path / "x.lock"
+    assert lock_holder(path) is None and not path.exists()
+    lock = acquire_lock(path, what="rsmb survey")
+    before = path.read_bytes(), path.stat().st_mtime_ns
+    assert lock_holder(path) == f"pid {os.getpid()}"
+    assert (path.read_bytes(), path.stat().st_mtime_ns) == before
+    lock.release()
+    assert lock_holder(path) is None
+    acquire_lock(path, what="rsmb survey").release()  # free to take again

@@ -112,6 +112,10 @@ def test_a_second_survey_on_the_folder_changes_nothing(archive, tmp_path, capsys
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "ledger.sqlite.lock: in use by another rsmb survey" in err[0], err
         assert _tree(out) == before
+        # a dry run meanwhile tells the capture being built from one a night left running
+        assert main([*args, "--dry-run", "--json"]) == 0
+        reasons = [c["reason"] for c in json.loads(capsys.readouterr().out)["captures"]]
+        assert any(r.startswith("running now in the night on this folder (pid ") for r in reasons), reasons
     summary = _summary(out)
     assert summary["done"] == 3 and summary["failed"] == 0
     for k in range(3):
