@@ -7,6 +7,7 @@ the problem), 1 anything else.
 import contextlib
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -307,18 +308,18 @@ def survey(ctx, references, captures, out_dir, axes, half_width, step, slow_axes
 
 def _check_captures_glob(captures, references):
     """Refuse a ``--captures`` without a wildcard beside which REFERENCE files
-    lie: the shell expanded an unquoted glob, its first match became the
-    captures and the others references (the night would redo or skip them)."""
-    import glob
-
-    if glob.has_magic(captures):
+    of its suffix lie: the shell expanded an unquoted glob, its first match
+    became the captures and the others references (the night would redo or
+    skip them)."""
+    if any(c in captures for c in "*?["):
         return
-    folder = Path(captures).absolute().parent
-    beside = [r for r in references if Path(r).absolute().parent == folder]
+    path = Path(captures).absolute()
+    beside = [r for r in references if Path(r).absolute().parent == path.parent and os.path.isfile(r)
+              and Path(r).suffix.lower() == path.suffix.lower()]
     if beside:
         raise click.BadParameter(
             f"{captures!r} has no wildcard and {len(beside)} REFERENCE file(s) lie beside it ({beside[0]}): "
-            f"was an unquoted glob expanded by the shell? Quote it: --captures '{folder}/*{Path(captures).suffix}'",
+            f"was an unquoted glob expanded by the shell? Quote it: --captures '{path.parent}/*{path.suffix}'",
             param_hint="'--captures'")
 
 
@@ -407,7 +408,6 @@ def _now(code):
 def _exit_now(code):
     """Exit with ``code`` without waiting for the tasks an interrupted run
     abandoned (their threads would hold the interpreter's exit)."""
-    import os
     import threading
 
     if threading.active_count() == 1:
