@@ -332,17 +332,22 @@ def _ledger_rows(out):
         return []
 
 
+def _six_captures(night, scene, seed):
+    """Six small captures ``c00.tif`` .. ``c05.tif`` of ``scene`` in ``night``, placed by ``seed``."""
+    rng = np.random.default_rng(seed)
+    for k in range(6):
+        origin = tuple(int(v) for v in rng.integers(40, 300, size=2))
+        _capture(night / f"c{k:02d}.tif", scene, origin, seed=100 * (seed - 3) + k)
+    return night
+
+
 def test_ctrl_c_stops_within_seconds_and_nothing_finished_is_redone(archive, tmp_path):
     """SIGINT to a night of many small captures once one is done: the night
     stops within seconds with exit 130, writes its summary and index, records
     every finished capture done (its folder in place) and leaves no attempt
     running; the next night skips them and runs the rest."""
     _, scene, references = archive
-    night = tmp_path / "night"
-    rng = np.random.default_rng(5)
-    for k in range(6):
-        origin = tuple(int(v) for v in rng.integers(40, 300, size=2))
-        _capture(night / f"c{k:02d}.tif", scene, origin, seed=200 + k)
+    night = _six_captures(tmp_path / "night", scene, 5)
     out = tmp_path / "out"
     args = _args(references, night / "*.tif", out, "--parallel", "1", "--json")
     proc = subprocess.Popen([sys.executable, "-m", "rsmb.pipeline.cli", *args], stdout=subprocess.PIPE,
@@ -384,24 +389,25 @@ def test_a_workflow_stopped_records_its_night_and_its_steps(archive, tmp_path):
     import yaml
 
     _, scene, references = archive
-    night = tmp_path / "night"
-    rng = np.random.default_rng(6)
-    for k in range(6):
-        origin = tuple(int(v) for v in rng.integers(40, 300, size=2))
-        _capture(night / f"c{k:02d}.tif", scene, origin, seed=300 + k)
+    night = _six_captures(tmp_path / "night", scene, 6)
     survey = {"references": [str(r) for r in references], "captures": str(night / "*.tif"),
               "output": str(tmp_path / "out"), "parallel": 1, "report": False, "settle": 0, "tile_size": 160}
     flow = tmp_path / "night.yaml"
     later = {"synth": {"out_dir": str(tmp_path / "later"), "size": 64}}
-    flow.write_text(yaml.safe_dump({"name": "w", "steps": [{"survey": survey}, later]}))
-    proc = subprocess.Popen([sys.executable, "-m", "rsmb.pipeline.cli", "-q", "run", str(flow)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    _wait_for(lambda: any(s == "done" for _, s, _ in _ledger_rows(tmp_path / "out")) or proc.poll() is not None, 300)
-    proc.send_signal(signal.SIGINT)
-    _, stderr = proc.communicate(timeout=60)
-    assert proc.returncode == 130, stderr.decode()
-    assert "workflow stopped by SIGINT" in stderr.decode()
-    steps = json.loads((tmp_path / "w.summary.json").read_text())
+
+    def stopped(steps, ready, signum):
+        """``rsmb run`` of ``steps`` sent ``signum`` once ``ready()``: (exit code, stderr, the summary's steps)."""
+        flow.write_text(yaml.safe_dump({"name": "w", "steps": steps}))
+        proc = subprocess.Popen([sys.executable, "-m", "rsmb.pipeline.cli", "-q", "run", str(flow)],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        _wait_for(lambda: ready() or proc.poll() is not None, 300)
+        proc.send_signal(signum)
+        _, stderr = proc.communicate(timeout=60)
+        return proc.returncode, stderr.decode(), json.loads((tmp_path / "w.summary.json").read_text())
+
+    code, stderr, steps = stopped([{"survey": survey}, later],
+                                  lambda: any(s == "done" for _, s, _ in _ledger_rows(tmp_path / "out")), signal.SIGINT)
+    assert code == 130 and "workflow stopped by SIGINT" in stderr, stderr
     assert [s["status"] for s in steps] == ["interrupted", "not run"]
     assert steps[0]["result"]["summary"] == str(sorted((tmp_path / "out" / "nights").glob("*.json"))[-1])
     assert _summary(tmp_path / "out")["done"] >= 1
@@ -411,15 +417,9 @@ def test_a_workflow_stopped_records_its_night_and_its_steps(archive, tmp_path):
     np.save(tmp_path / "dist.npy", pair.distorted)
     detect = {"reference": str(tmp_path / "ref.npy"), "distorted": str(tmp_path / "dist.npy"),
               "output": str(tmp_path / "d.zarr"), "tile_size": 64}
-    flow.write_text(yaml.safe_dump({"name": "w", "steps": [{"detect": detect}, later]}))
-    proc = subprocess.Popen([sys.executable, "-m", "rsmb.pipeline.cli", "-q", "run", str(flow)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    _wait_for(lambda: (tmp_path / "d.zarr.partial" / "work").is_dir() or proc.poll() is not None, 300)
-    proc.send_signal(signal.SIGTERM)
-    _, stderr = proc.communicate(timeout=60)
-    assert proc.returncode == 143, stderr.decode()
-    assert "interrupted by SIGTERM" in stderr.decode()
-    steps = json.loads((tmp_path / "w.summary.json").read_text())
+    code, stderr, steps = stopped([{"detect": detect}, later], (tmp_path / "d.zarr.partial" / "work").is_dir,
+                                  signal.SIGTERM)
+    assert code == 143 and "interrupted by SIGTERM" in stderr, stderr
     assert [s["status"] for s in steps] == ["interrupted", "not run"]
     assert not (tmp_path / "d.zarr.lock").exists()
 
