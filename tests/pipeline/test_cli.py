@@ -1,6 +1,7 @@
 """The command line through click's CliRunner; outputs re-opened from disk."""
 
 import json
+import logging
 
 import numpy as np
 import pytest
@@ -194,3 +195,20 @@ def test_a_capture_with_nothing_to_register_says_so(tmp_path, capsys, caplog):
     assert "no evidence on 100 % of the capture's pixels" in caplog.text
     assert main(["-q", "detect", str(tmp_path / "r.npy"), str(tmp_path / "d.npy"), "-o", str(tmp_path / "p.zarr")]) == 0
     assert "gain n/a" in capsys.readouterr().out
+
+
+def test_a_capture_of_another_scene_is_warned_about(tmp_path, caplog):
+    """A capture of another scene than its reference's (the trial's wrong
+    reference) is no clean 'done' in silence: its change threshold follows
+    residuals of the whole scene's contrast, and detect warns; a capture of
+    the reference's scene does not."""
+    from rsmb import ops
+
+    one, other = (ops.synthesize_pair((256, 256), seed=s, changes=0) for s in (1, 2))
+    for name, image in (("r", one.reference), ("d", one.distorted), ("x", other.distorted)):
+        np.save(tmp_path / f"{name}.npy", image)
+    with caplog.at_level(logging.WARNING, logger="rsmb"):
+        assert main(["detect", str(tmp_path / "r.npy"), str(tmp_path / "d.npy"), "-o", str(tmp_path / "a.zarr")]) == 0
+        assert "is the reference of this capture's scene?" not in caplog.text
+        assert main(["detect", str(tmp_path / "r.npy"), str(tmp_path / "x.npy"), "-o", str(tmp_path / "b.zarr")]) == 0
+    assert "is the reference of this capture's scene?" in caplog.text
