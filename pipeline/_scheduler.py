@@ -219,7 +219,8 @@ class Runner:
         """Refuse every task not yet started, of every run on this runner
         (their map raises :class:`ops.RunError`); running tasks finish.  For a
         night whose running captures were abandoned: they start nothing
-        more beside the night's end."""
+        more beside the night's end.  A ``processes`` runner refuses at the
+        next map only (its pool's queue is its own)."""
         self.stopped.set()
 
     def describe(self):
@@ -287,6 +288,9 @@ class Runner:
                 progress.step(len(done))
             if not pending:
                 break
+            if self.stopped.is_set():
+                self.client.cancel(list(pending))
+                raise RunError(f"the runner was stopped ({len(pending)} of {n} tasks unfinished)")
             if self._alone_for(self._workers_left()) > self.worker_timeout:
                 self.client.cancel(list(pending))
                 raise RunError(f"scheduler: no dask worker left for {self.worker_timeout:g} s "

@@ -335,29 +335,30 @@ def _interrupted_code(signum):
 
 
 @contextlib.contextmanager
-def _interruptible():
-    """SIGINT and SIGTERM interrupt the command at once (KeyboardInterrupt:
-    its cleanup runs, locks are released, partial outputs removed), the
-    signal recorded for the exit code; the handlers before are put back
-    after.  Outside the main thread (a program calling :func:`main` from a
-    thread) signals are left as they are."""
+def _on_signals(handler):
+    """``handler`` on SIGINT and SIGTERM meanwhile, the handlers before put
+    back after.  Outside the main thread (a program calling :func:`main`
+    from a thread) signals are left as they are."""
     import signal
     import threading
 
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-
-    def handler(signum, frame):
-        _SIGNALLED.append(signum)
-        raise KeyboardInterrupt
-
     saved = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
         for s, previous in saved.items():
             signal.signal(s, previous)
+
+
+def _interrupt(signum, frame):
+    """SIGINT and SIGTERM interrupt the command at once (KeyboardInterrupt: its
+    cleanup runs, locks are released, partial outputs removed), the signal
+    recorded for the exit code."""
+    _SIGNALLED.append(signum)
+    raise KeyboardInterrupt
 
 
 @contextlib.contextmanager
@@ -365,33 +366,24 @@ def _stopped_by_signals():
     """A night's stop (pipeline.archive._survey._Stop) that SIGINT and SIGTERM
     set while a night listens for it (``stop.listening``, set by the survey
     while its night runs); a second signal, or one while no night listens (a
-    workflow's other steps), interrupts at once.  The handlers before are put
-    back after."""
+    workflow's other steps), interrupts at once (:func:`_interrupt`)."""
     import signal
-    import threading
 
     from .archive._survey import _Stop
 
     stop = _Stop()
-    if threading.current_thread() is not threading.main_thread():
-        yield stop
-        return
 
     def handler(signum, frame):
-        _SIGNALLED.append(signum)
         if stop.event.is_set() or not stop.listening:  # a second signal, or no night to stop in order: now
-            raise KeyboardInterrupt
+            _interrupt(signum, frame)
+        _SIGNALLED.append(signum)
         stop.signum = signum
         stop.event.set()
         log.warning("survey: %s received: stopping (queued captures cancelled, running ones finish or are "
                     "abandoned within seconds)", signal.Signals(signum).name)
 
-    saved = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with _on_signals(handler):
         yield stop
-    finally:
-        for s, previous in saved.items():
-            signal.signal(s, previous)
 
 
 def _now(code):
@@ -401,21 +393,17 @@ def _now(code):
     import threading
 
     if threading.active_count() > 1:
-        _exit_now(code)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        logging.shutdown()
+        os._exit(code)
     return code
 
 
 def _exit_now(code):
     """Exit with ``code`` without waiting for the tasks an interrupted run
-    abandoned (their threads would hold the interpreter's exit)."""
-    import threading
-
-    if threading.active_count() == 1:
-        raise click.exceptions.Exit(code)
-    sys.stdout.flush()
-    sys.stderr.flush()
-    logging.shutdown()
-    os._exit(code)
+    abandoned (:func:`_now`)."""
+    raise click.exceptions.Exit(_now(code))
 
 
 @cli.command("run")
@@ -463,7 +451,7 @@ def main(argv=None):
     configure_process()  # the rsmb command is its own process: its settings are rsmb's
     _SIGNALLED.clear()
     try:
-        with _interruptible():
+        with _on_signals(_interrupt):
             code = cli.main(args=argv, prog_name="rsmb", standalone_mode=False)
     except click.exceptions.Exit as exc:
         return exc.exit_code

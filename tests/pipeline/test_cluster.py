@@ -123,3 +123,20 @@ def test_tasks_leave_a_shared_workers_thread_settings_as_they_found_them(tmp_pat
     assert after[0] == before[0] == 3 and before[1]
     # every BLAS the worker had keeps its count (one the tasks loaded, by importing scipy, keeps its default)
     assert {path: after[1][path] for path in before[1]} == before[1]
+
+
+def test_a_stopped_runner_cancels_its_cluster_tasks(dask_cluster):
+    """Runner.stop on a dask.distributed runner: the map under way cancels its
+    tasks not finished and raises within about a second, not after them."""
+    import threading
+
+    from rsmb.ops import RunError
+    from rsmb.pipeline._scheduler import open_runner
+
+    scheduler_file, _ = dask_cluster
+    with open_runner(str(scheduler_file), progress=False) as runner:
+        threading.Timer(1.0, runner.stop).start()
+        start = time.monotonic()
+        with pytest.raises(RunError, match="stopped"):
+            runner.map("nap", time.sleep, [(3.0,) for _ in range(8)])  # 12 s on the worker's two threads
+        assert time.monotonic() - start < 5
