@@ -375,28 +375,49 @@ def _nnqp(h, b, x, tol):
 
 @numba.njit(**_SUMS)
 def _line_search(r, e, slope_w, delta):
-    """Exact minimiser over t in [0, 1] of sum rho(r - t e) + t * slope_w."""
+    """Exact minimiser over t in [0, 1] of sum rho(r - t e) + t * slope_w.
 
-    def dphi(t):
-        acc = slope_w
-        curv = 0.0
-        for j in range(r.shape[0]):
-            rj = r[j] - t * e[j]
-            acc -= _psi(rj, delta) * e[j]
-            if abs(rj) <= delta:
-                curv += 2.0 * e[j] * e[j]
-        return acc, curv
-
-    d1, _ = dphi(1.0)
+    One pass over the pixels gives the derivative at both ends; a pixel
+    that keeps its side of the Huber kinks over the whole step adds a term
+    linear in t, so the search for the derivative's root (safeguarded
+    Newton on a piecewise-linear, increasing function) then runs over the
+    pixels that cross a kink only."""
+    n = r.shape[0]
+    lin0 = slope_w  # derivative of the pixels that keep their side: lin0 + t * lin1
+    lin1 = 0.0
+    d0 = slope_w
+    d1 = slope_w
+    cross = np.empty(n, dtype=np.int64)
+    nc = 0
+    for j in range(n):
+        ej = e[j]
+        if ej == 0.0:
+            continue
+        r0 = r[j]
+        r1 = r0 - ej
+        p0 = _psi(r0, delta) * ej
+        p1 = _psi(r1, delta) * ej
+        d0 -= p0
+        d1 -= p1
+        if abs(r0) <= delta and abs(r1) <= delta:
+            lin0 -= 2.0 * r0 * ej
+            lin1 += 2.0 * ej * ej
+        elif r0 > delta and r1 > delta or r0 < -delta and r1 < -delta:
+            lin0 -= p0
+        else:
+            cross[nc] = j
+            nc += 1
     if d1 <= 0.0:
         return 1.0
-    lo, hi = 0.0, 1.0
-    t = 1.0
-    d, c = d1, 0.0
-    d0, c0 = dphi(0.0)
     if d0 >= 0.0:
         return 0.0
-    t, d, c = 0.0, d0, c0
+    lo, hi = 0.0, 1.0
+    t, d = 0.0, d0
+    c = lin1
+    for q in range(nc):
+        j = cross[q]
+        if abs(r[j]) <= delta:
+            c += 2.0 * e[j] * e[j]
     for _ in range(60):
         if d < 0.0:
             lo = t
@@ -408,7 +429,14 @@ def _line_search(r, e, slope_w, delta):
         if hi - lo < 1e-14:
             break
         t = nt
-        d, c = dphi(t)
+        d = lin0 + t * lin1
+        c = lin1
+        for q in range(nc):
+            j = cross[q]
+            rj = r[j] - t * e[j]
+            d -= _psi(rj, delta) * e[j]
+            if abs(rj) <= delta:
+                c += 2.0 * e[j] * e[j]
         if d == 0.0:
             break
     return t
@@ -596,7 +624,6 @@ def _iterate(cols, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=Tru
     pick = np.empty(max(max_add, 1), dtype=np.int64)
     cache = _gram_cache(k_count, min(k_count, GRAM_POOL))
     m = 0
-    warm = False  # started from a support: its partition is a Newton model's first guess
     if restricted:
         # a warm start is first solved on its own support: a row whose
         # support is its neighbour's (most rows) then needs one pass over
@@ -606,7 +633,6 @@ def _iterate(cols, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=Tru
                 idx[m] = k
                 m += 1
         if m > 0:
-            warm = True
             full = False
             for k in range(k_count):
                 seen[k] = w[k] > 0.0
@@ -639,11 +665,11 @@ def _iterate(cols, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=Tru
             full = False
             for k in range(k_count):
                 seen[k] = work[k]
-        # quadratic model of the current partition
-        # Newton model of the partition once it is stable, and from the first
-        # iteration of a warm start (the neighbour's fit leaves most pixels
-        # on their side); otherwise the half-quadratic majoriser (outlier
-        # curvature delta/|r|), which is bounded below whatever the partition
+        # quadratic model of the current partition: its Newton model (the
+        # objective's own second-order model, exact while no pixel changes
+        # side), unless the last Newton step failed to descend; then the
+        # half-quadratic majoriser (outlier curvature delta/|r|), which is
+        # bounded below whatever the partition
         stable = True
         for j in range(n):
             side = 0
@@ -659,7 +685,7 @@ def _iterate(cols, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=Tru
             if part[j] == 0:
                 inliers += 1
         # the Newton model is bounded only with enough inliers to fix every pose
-        newton = newton_ok and inliers >= m and (stable and it > 0 or it == 0 and warm)
+        newton = newton_ok and inliers >= m
         # the Newton model's pixel weights depend on the partition only: its
         # products from the last iteration still hold when that was a Newton
         # model of the same partition
