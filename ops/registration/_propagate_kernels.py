@@ -34,7 +34,7 @@ _SUMS = dict(nogil=True, cache=True, fastmath={"reassoc", "contract"})
 #: :mod:`ops.registration._rowsolve` or of :func:`ops._warp._warp_into` (and
 #: what it calls) raises this number, or a checkout that ran the old code
 #: keeps running it here.
-ROWSOLVE_REVISION = 14
+ROWSOLVE_REVISION = 15
 
 #: A row whose centroid, against where the path before it leads (its last pose
 #: plus its velocity), moves the window's pixels by more than this (px)

@@ -374,8 +374,9 @@ def _nnqp(h, b, x, tol):
 
 
 @numba.njit(**_SUMS)
-def _line_search(r, e, slope_w, delta):
-    """Exact minimiser over t in [0, 1] of sum rho(r - t e) + t * slope_w.
+def _line_search(r, e, slope_w, delta, cross):
+    """Exact minimiser over t in [0, 1] of sum rho(r - t e) + t * slope_w
+    (``cross`` (n,) int64: work space, the solve's own).
 
     One pass over the pixels gives the derivative at both ends; a pixel
     that keeps its side of the Huber kinks over the whole step adds a term
@@ -387,7 +388,6 @@ def _line_search(r, e, slope_w, delta):
     lin1 = 0.0
     d0 = slope_w
     d1 = slope_w
-    cross = np.empty(n, dtype=np.int64)
     nc = 0
     for j in range(n):
         ej = e[j]
@@ -614,6 +614,7 @@ def _iterate(cols, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=Tru
     e = np.empty(n)
     w_old = np.empty(k_count)
     r_old = np.empty(n)
+    cross = np.empty(n, dtype=np.int64)  # the line search's pixels that cross a kink
     viol = np.inf
     it = 0
     newton_ok = True
@@ -721,7 +722,7 @@ def _iterate(cols, g, w, lam, delta, tol_rel, max_outer, max_add, restricted=Tru
                 ap = _column(cols, idx[p])
                 for j in range(n):
                     e[j] += d * ap[j]
-        t = _line_search(r, e, slope, delta)
+        t = _line_search(r, e, slope, delta, cross)
         if t <= 0.0:
             if newton:  # the partition's Newton model misled: the majoriser's step descends
                 newton_ok = False

@@ -393,3 +393,33 @@ def test_working_set_passes_agree_with_passes_over_every_pose(solved):
                 objectives.append(obj)
             assert objectives[0] == pytest.approx(objectives[1], rel=1e-6), seed
             assert objectives[0] <= exact.objective * (1 + 1e-6) + 1e-12, seed
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_line_search_is_the_exact_minimiser_along_the_step(seed):
+    """The one-pass line search (pixels that cross a Huber kink searched
+    apart from those that keep their side) finds the minimiser over [0, 1]
+    of sum rho(r - t e) + t * slope: checked against a dense grid of t,
+    refined, with pixels on both sides, crossing one and both kinks, and
+    with e = 0."""
+    from rsmb.ops.registration._rowsolve import _huber_value, _line_search
+
+    rng = np.random.default_rng(seed)
+    n, delta = 300, 0.05
+    r = rng.normal(0.0, 0.08, n)
+    e = rng.normal(0.0, 0.1, n)
+    e[::17] = 0.0
+    slope = float(rng.normal(0.0, 0.5))
+
+    def phi(t):
+        return sum(_huber_value(x, delta) for x in r - t * e) + t * slope
+
+    t = _line_search(r, e, slope, delta, np.empty(n, np.int64))
+    assert 0.0 <= t <= 1.0
+    grid = np.linspace(0.0, 1.0, 2001)
+    best = grid[np.argmin([phi(x) for x in grid])]
+    fine = np.linspace(max(best - 1e-3, 0.0), min(best + 1e-3, 1.0), 2001)
+    reference = min(phi(x) for x in fine)
+    assert phi(t) <= reference + 1e-12 * max(abs(reference), 1.0)
+    crossing = np.sum((np.abs(r) <= delta) != (np.abs(r - e) <= delta))
+    assert crossing > 10  # the case exercises the kink walk
