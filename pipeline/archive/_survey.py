@@ -427,7 +427,13 @@ def _night(ledger, found, out, references, night, config, settle, run, stop):
             log.info("survey: %s: %s", name, decision.reason)
             todo.append((capture, name, ledger.start(str(capture), key, night=night), decision.reason, st))
     if todo:  # a night with nothing to run opens no scheduler (no cluster jobs, no connection)
+        from ._survey_map import preload
+
+        # the map at the night's end draws with matplotlib: imported now, beside the captures
+        warm = threading.Thread(target=preload, name="rsmb-map-imports", daemon=True)
+        warm.start()
         results.update(_run_all(ledger, todo, out, references, config, run, stop))
+        warm.join()
     return [results[capture] for capture, _ in found]
 
 

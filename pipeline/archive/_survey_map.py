@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MAP_NAME", "STATUS_COLOURS", "write_map"]
+__all__ = ["MAP_NAME", "STATUS_COLOURS", "preload", "write_map"]
 
 MAP_NAME = "map.png"
 STATUS_COLOURS = {"new": "#d62728", "persisting": "#ff7f0e", "gone": "#7f7f7f", "unobserved": "#9467bd"}
@@ -53,6 +53,26 @@ def _patches(geometries, **style):
 
     paths = [p for p in map(_path, geometries) if p is not None]
     return PathCollection(paths, **style) if paths else None
+
+
+def preload():
+    """Import what :func:`write_map` draws with (matplotlib, half a second of
+    Python): a night calls it in a thread of its own as its captures start, so
+    that the imports run beside their detection, not after the last one.  It
+    never raises: an import that fails here fails again, and is reported, when
+    the map is drawn."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg", force=False)
+        import matplotlib.backends.backend_agg  # noqa: F401
+        import matplotlib.collections  # noqa: F401
+        import matplotlib.figure  # noqa: F401
+        import matplotlib.lines  # noqa: F401
+        import matplotlib.patches  # noqa: F401
+        import matplotlib.path  # noqa: F401
+    except Exception:  # noqa: BLE001 - write_map reports it
+        pass
 
 
 def write_map(path, history, *, width_px=900):

@@ -215,3 +215,56 @@ def test_the_map_draws_footprints_and_changes_by_status(three_nights, tmp_path):
     # the blue outline (antialiased: blue-dominant pixels) is far longer than the legend patch's
     blue = (rgb[:, 2].astype(int) - rgb[:, 0].astype(int) > 80).sum()
     assert blue > 500
+
+
+def test_an_observation_is_the_union_of_its_mask_polygons(tmp_path):
+    """The coverage and the changes read from a ground-frame mask are the union of its polygons: pixels
+    that touch only at a corner, holes of no evidence, a change that touches no evidence and one joined
+    to another by a diagonal (one 8-connected component, two 4-connected parts)."""
+    import rasterio
+    from rasterio.features import shapes
+    from rasterio.transform import from_origin
+    from scipy import ndimage
+
+    from rsmb.pipeline.archive._history import MASK_NODATA, read_observation
+
+    rng = np.random.default_rng(3)
+    mask = np.where(rng.random((64, 80)) < 0.03, MASK_NODATA, 0).astype(np.uint8)  # scattered no evidence
+    mask[:5, :] = MASK_NODATA  # a collar
+    mask[4, 30], mask[5, 30] = 0, MASK_NODATA  # a pixel of evidence that touches the rest at its corners only
+    mask[2, 40] = 0  # and one alone
+    mask[20:30, 10:20] = MASK_NODATA  # a hole
+    mask[40, 40] = mask[41, 41] = 1  # one change of two diagonal parts
+    mask[10:16, 50:60] = 1
+    mask[12, 55] = MASK_NODATA  # a change with a hole
+    mask[50:52, 5:7] = 1
+    transform = from_origin(500000.0, 4200000.0, 0.5, 0.5)
+    path = tmp_path / "mask.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=80, height=64, count=1, dtype="uint8", crs=CRS,
+                       transform=transform, nodata=MASK_NODATA) as ds:
+        ds.write(mask, 1)
+
+    coverage, changes, _ = read_observation(path)
+
+    valid = mask != MASK_NODATA
+    pieces = [shapely.geometry.shape(g) for g, _ in shapes(valid.astype(np.uint8), mask=valid, transform=transform)]
+    assert len(pieces) > 1  # corners split the coverage into polygons the union joins
+    assert coverage.is_valid and shapely.normalize(coverage).equals_exact(
+        shapely.normalize(shapely.union_all(pieces)), 0)
+    assert coverage.area == pytest.approx(valid.sum() * 0.25)
+    labels, n = ndimage.label(mask == 1, structure=np.ones((3, 3), bool))
+    assert len(changes) == n == 3
+    for k, change in enumerate(changes, start=1):
+        assert change.is_valid and change.area == pytest.approx((labels == k).sum() * 0.25)
+    assert changes[1].geom_type == "MultiPolygon"  # the diagonal pair (the second in raster order)
+
+
+def test_the_maps_imports_ahead_of_the_night_never_raise(monkeypatch):
+    """A night imports the map's modules in a thread as its captures start: a broken matplotlib is left
+    for the map itself to report."""
+    import sys
+
+    from rsmb.pipeline.archive._survey_map import preload
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib raises ImportError
+    preload()
