@@ -56,9 +56,10 @@ def _patches(geometries, **style):
 
 
 def preload():
-    """Import what :func:`write_map` draws with (matplotlib, half a second of
-    Python): a night calls it in a thread of its own as its captures start, so
-    that the imports run beside their detection, not after the last one.  It
+    """Import what :func:`write_map` draws with (matplotlib, whose import is
+    long-running Python): a night calls it in a thread of its own as its
+    captures start, so that the imports run beside their detection, not after
+    the last one.  It
     never raises: an import that fails here fails again, and is reported, when
     the map is drawn."""
     try:
