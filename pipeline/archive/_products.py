@@ -98,13 +98,19 @@ class Here:
     :meth:`kill` in the calling thread (a night without reports, or of one
     capture: nothing of its Python to take out of the night's process)."""
 
-    def __init__(self, report=True):
+    def __init__(self, report=True, imports=None):
         self.report = report
+        self.imports = imports
 
     def write(self, store, folder, last_change, capture):
         """The products of ``store`` in ``folder`` (:func:`write_capture_products`)
         for ``capture`` (its path, in messages): returns their changes, area
-        and :func:`observe`."""
+        and :func:`observe`.  A report drawn here waits for ``imports`` (the
+        night's thread importing matplotlib, :func:`._survey_map.preload`):
+        two threads never import matplotlib at once (a package whose modules
+        import each other can be seen half-initialised by the second)."""
+        if self.report and self.imports is not None:
+            self.imports.join()
         return (*write_capture_products(store, folder, last_change, self.report), observe(folder))
 
     def close(self):
@@ -129,8 +135,8 @@ class ProductProcess(Here):
     the capture it was writing is abandoned); then every :meth:`write`
     raises."""
 
-    def __init__(self):
-        super().__init__(report=True)
+    def __init__(self, imports=None):
+        super().__init__(report=True, imports=imports)
         self._lock = threading.Lock()
         self._child = None
         self._answers = None

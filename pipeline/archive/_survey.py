@@ -430,10 +430,10 @@ def _night(ledger, found, out, references, night, config, settle, run, stop):
         from ._survey_map import preload
 
         # the map at the night's end draws with matplotlib: imported now, beside the captures
-        warm = threading.Thread(target=preload, name="rsmb-map-imports", daemon=True)
-        warm.start()
-        results.update(_run_all(ledger, todo, out, references, config, run, stop))
-        warm.join()
+        imports = threading.Thread(target=preload, name="rsmb-map-imports", daemon=True)
+        imports.start()
+        results.update(_run_all(ledger, todo, out, references, config, dict(run, imports=imports), stop))
+        imports.join()
     return [results[capture] for capture, _ in found]
 
 
@@ -478,7 +478,8 @@ def _run_all(ledger, todo, out, references, config, run, stop):
     driver = ThreadPoolExecutor(parallel + cores + 1)
     # a night's reports (matplotlib: Python that holds the interpreter's lock) stall the other captures' tasks:
     # with them, the products are written by a process of their own when other captures run beside them
-    products = ProductProcess().start() if run["report"] and total > 1 else Here(run["report"])
+    products = (ProductProcess(run["imports"]).start() if run["report"] and total > 1
+                else Here(run["report"], run["imports"]))
     stack.callback(products.close)
     interrupted = False
     try:

@@ -254,8 +254,12 @@ def test_an_observation_is_the_union_of_its_mask_polygons(tmp_path):
     assert coverage.area == pytest.approx(valid.sum() * 0.25)
     labels, n = ndimage.label(mask == 1, structure=np.ones((3, 3), bool))
     assert len(changes) == n == 3
+    parts = {}
+    for geom, value in shapes(labels.astype(np.int32), mask=labels > 0, connectivity=4, transform=transform):
+        parts.setdefault(int(value), []).append(shapely.geometry.shape(geom))
     for k, change in enumerate(changes, start=1):
         assert change.is_valid and change.area == pytest.approx((labels == k).sum() * 0.25)
+        assert shapely.normalize(change).equals_exact(shapely.normalize(shapely.union_all(parts[k])), 0)
     assert changes[1].geom_type == "MultiPolygon"  # the diagonal pair (the second in raster order)
 
 

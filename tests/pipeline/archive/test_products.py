@@ -198,3 +198,32 @@ def test_ctrl_c_ends_the_products_process_with_the_night(tmp_path):
     assert proc.returncode == 130, stderr.decode()
     time.sleep(1.0)
     assert not _products_processes(proc.pid)
+
+
+def test_a_report_drawn_in_the_nights_process_waits_for_the_nights_matplotlib_imports(tmp_path, monkeypatch):
+    """The night imports matplotlib in a thread as its captures start; a
+    report written by the night's own process (one capture, or a products
+    process that gave up) waits for that thread first, so that two threads
+    never import matplotlib at once.  Products without a report do not
+    wait."""
+    order = []
+
+    class Imports:
+        def join(self):
+            order.append("joined")
+
+    def written(store, folder, last_change, report=True):
+        order.append(f"written, report {report}")
+        return 0, 0.0
+
+    monkeypatch.setattr(_products, "write_capture_products", written)
+    monkeypatch.setattr(_products, "observe", lambda folder: None)
+    assert _products.Here(True, Imports()).write(tmp_path, tmp_path, 0.0, "c.tif") == (0, 0.0, None)
+    assert order == ["joined", "written, report True"]
+    order.clear()
+    _products.Here(False, Imports()).write(tmp_path, tmp_path, 0.0, "c.tif")
+    assert order == ["written, report False"]
+    order.clear()
+    child = _products.ProductProcess(Imports())  # never started: it writes here, as after giving up
+    child.write(tmp_path, tmp_path, 0.0, "c.tif")
+    assert order == ["joined", "written, report True"]
