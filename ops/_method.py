@@ -9,7 +9,8 @@ so that a library user and ``rsmb detect`` get the same answer.
    search grid touched a clipped pixel (their weighted poses do not).
 4. Depth layers, the dense depth map and the rows re-solved at depth.
 5. The change score; the pixels the plane left without a model (clipped ones)
-   scored on their model interval; parallax is never change.
+   scored on their model interval; parallax is never change, and what its
+   depth explained still bounds its neighbours' half-maximum test.
 
 The tiled pipeline reads the windows, calls :func:`run_method` per tile and
 writes what it returns; the threshold of the whole mosaic and the masks come
@@ -63,6 +64,11 @@ class MethodResult:
         Residual and score histograms of the window (they add up over tiles).
     timings : dict
         CPU-seconds of the calling thread per stage (``<stage>_s``).
+    explained : ndarray, shape (H, W), float32, or None
+        The score the parallax pixels had at the ground's depth (the
+        re-grounded registration's), 0 elsewhere; None when no pixel is
+        parallax.  The masks' half-maximum test measures the neighbours of
+        parallax against it (:func:`change_candidates`).
     """
 
     registration: object
@@ -72,6 +78,7 @@ class MethodResult:
     components: list = field(default_factory=list)
     histogram: object = None
     timings: dict = field(default_factory=dict)
+    explained: np.ndarray = None
 
 
 def run_method(reference, capture, *, camera, params=None, changes=None, intensity=None, reference_origin_yx=(0, 0),
@@ -133,11 +140,16 @@ def run_method(reference, capture, *, camera, params=None, changes=None, intensi
             model = np.where(result.valid, model, bounded[1])
             known = result.valid | np.isfinite(bounded[0])
         score = np.where(known, change_score(chi, model, params=changes), np.nan)  # NaN: no evidence
+        explained = None
+        if layers.parallax.any():
+            ground = change_score(result.chi, result.registered, params=changes)
+            explained = np.where(layers.parallax, np.nan_to_num(ground), 0.0).astype(np.float32)
         score = np.where(layers.parallax & np.isfinite(score), 0.0, score)  # parallax is never change, clipped or not
         residual = np.where(result.valid, distorted - layers.registered, 0.0)
         hist = score_histogram(residual, score, result.valid)
     timings = {**result.timings, **clock.seconds}
-    return MethodResult(result, model, score.astype(np.float32), layers.parallax, layers.components, hist, timings)
+    return MethodResult(result, model, score.astype(np.float32), layers.parallax, layers.components, hist, timings,
+                        explained)
 
 
 def method_changes(result, *, camera, params=None):
@@ -151,7 +163,7 @@ def method_changes(result, *, camera, params=None):
     """
     params = params or ChangeParams()
     threshold = change_threshold(result.histogram, params=params)
-    mask = change_mask(np.nan_to_num(result.score), threshold, params=params)
+    mask = change_mask(np.nan_to_num(result.score), threshold, params=params, explained=result.explained)
     reg = result.registration
     ref = changes_to_reference(mask, reg.trajectory, axes=reg.axes, camera=camera, reference_shape=mask.shape)
     return ChangeResult(result.score, mask, ref > 0, threshold)

@@ -352,7 +352,7 @@ def _allowed_score(chi, image, k, out):
             out[i, j] = x if (x >= zero or x != x) else zero
 
 
-def change_candidates(score, threshold, *, params=ChangeParams()):
+def change_candidates(score, threshold, *, params=ChangeParams(), explained=None):
     """Pixels that may belong to a change: above ``hysteresis * threshold`` and at
     least ``half_max`` times the largest score within ``half_max_window``.
 
@@ -365,6 +365,14 @@ def change_candidates(score, threshold, *, params=ChangeParams()):
         ``|chi|``; NaN or 0 where nothing is known.
     threshold : float
         From :func:`change_threshold`.
+    explained : ndarray, shape (H, W), optional
+        What the depth explained away: the score parallax pixels had at the
+        ground's depth, 0 (or NaN) elsewhere (:attr:`MethodResult.explained`).
+        Those scores count towards the largest score of the window as a
+        change's own do, and nothing else: motion blur spreads a raised
+        structure's residual onto its neighbours as it spreads a change's, so
+        a neighbour under ``half_max`` of the residual the depth explained is
+        its blurred rim, not a change of its own.
 
     Returns
     -------
@@ -374,7 +382,8 @@ def change_candidates(score, threshold, *, params=ChangeParams()):
     mask = score > params.hysteresis * threshold
     if params.half_max_window > 1:
         kernel = np.ones((params.half_max_window, params.half_max_window), np.uint8)
-        mask &= score >= params.half_max * cv2.dilate(score, kernel)  # a maximum filter
+        peak = score if explained is None else np.maximum(score, np.nan_to_num(np.asarray(explained, np.float32)))
+        mask &= score >= params.half_max * cv2.dilate(peak, kernel)  # a maximum filter
     return mask
 
 
@@ -462,7 +471,7 @@ def fill_holes(mask, *, params=ChangeParams()):
     return out
 
 
-def change_mask(score, threshold, *, params=ChangeParams()):
+def change_mask(score, threshold, *, params=ChangeParams(), explained=None):
     """Boolean change mask of a whole score image (the tiled pipeline computes the
     same from the pieces :func:`change_candidates`, :func:`label_components`,
     :func:`keep_components` and :func:`fill_holes`, merging labels across seams).
@@ -473,12 +482,15 @@ def change_mask(score, threshold, *, params=ChangeParams()):
         ``|chi|``, 0 where nothing is known.
     threshold : float
         From :func:`change_threshold`.
+    explained : ndarray, shape (H, W), optional
+        As :func:`change_candidates`.
 
     Returns
     -------
     ndarray of bool, shape (H, W)
     """
-    labels, area, peak = label_components(change_candidates(score, threshold, params=params), score)
+    labels, area, peak = label_components(change_candidates(score, threshold, params=params, explained=explained),
+                                          score)
     return fill_holes(keep_components(area, peak, threshold, params=params)[labels], params=params)
 
 

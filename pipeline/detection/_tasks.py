@@ -52,6 +52,7 @@ def _specs(grid, dims, margin=0):
         "work/tile_summary": spec((ny, nx, _SUMMARY), "float64", (1, 1, _SUMMARY), ("tile_y", "tile_x", "value"),
                                   compressed=False),
         "work/labels": spec((h, w), "int32", (t, t), ("row", "col"), compressed=False),
+        "work/explained": spec((h, w), "float32", (t, t), ("row", "col"), 0.0),
         "work/slow": spec((h, 3), "float32", (h, 3), ("y", "slow"), float("nan"), compressed=False),
         "work/tile_layers": spec((ny, nx, LAYER_SLOTS, len(LAYER_FIELDS)), "float64",
                                  (1, 1, LAYER_SLOTS, len(LAYER_FIELDS)), ("tile_y", "tile_x", "layer", "field"),
@@ -252,6 +253,8 @@ def register_task(store, tile, camera, params, changes, prior=None, band_start=N
         _array(store, "registered")[tile.core] = registered  # in the capture's units
         _array(store, "change_score")[tile.core] = found.score
         _array(store, "parallax_mask")[tile.core] = found.parallax.astype(np.uint8)
+        _array(store, "work/explained")[tile.core] = (np.zeros((h, w), np.float32) if found.explained is None
+                                                      else found.explained)  # 0: nothing explained
         _array(store, "work/tile_layers")[ty, tx] = _layer_table(found.components, tile)
         _array(store, "work/tile_rows")[tile.core[0], tx] = np.concatenate(
             [result.trajectory, result.row_state[:, None]], axis=1).astype(np.float32)
@@ -323,17 +326,20 @@ def _union(windows):
 def label_task(store, blocks, shape, threshold, change_params):
     """Stage 2: label the change candidates of each block's core of a group
     (:func:`block_groups`), its score grown by the margin the local
-    half-maximum test needs; the group's score is read once.  Returns per
+    half-maximum test needs, with what the depth explained there
+    (``work/explained``); the group's score is read once.  Returns per
     block (TileLabels, compute seconds, pixels of the core without evidence:
     NaN score)."""
     windows = [b.grown(change_params.margin, shape) for b in blocks]
     union = _union(windows)
     scores = _array(store, "change_score")[union]
+    explained = _array(store, "work/explained")[union]
     out = []
     for block, window in zip(blocks, windows):
-        score = scores[_inside(window, union)]
+        inside = _inside(window, union)
+        score = scores[inside]
         start = time.perf_counter()
-        candidates = ops.change_candidates(score, threshold, params=change_params)
+        candidates = ops.change_candidates(score, threshold, params=change_params, explained=explained[inside])
         core = _inside(block.core, window)
         labels, area, peak = ops.label_components(candidates[core], score[core])
         silent = int(np.isnan(score[core]).sum())

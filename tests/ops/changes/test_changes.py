@@ -10,6 +10,7 @@ from rsmb.ops import (
     ChangeParams,
     ParameterError,
     RSMBError,
+    change_candidates,
     change_mask,
     change_score,
     change_threshold,
@@ -304,6 +305,28 @@ def test_change_mask_hysteresis_keeps_weak_border_of_a_strong_blob():
     # hysteresis disabled: only the core
     core = change_mask(score, 0.2, params=ChangeParams(min_area=20, hysteresis=1.0, half_max_window=1))
     np.testing.assert_array_equal(core, score > 0.2)
+
+
+def test_the_rim_of_what_the_depth_explained_is_not_a_change_of_its_own():
+    """A structure the depth explains (score 0 as parallax, 0.6 at the ground's
+    depth) leaves a blurred rim that scores 0.22, under half of 0.6: measured
+    against what was explained, the rim is not a change; a new object of the
+    same score far from it still is, and so is one whose own score reaches
+    half of the explained residual beside it."""
+    score = np.zeros(SHAPE, np.float32)
+    explained = np.zeros(SHAPE, np.float32)
+    explained[10:20, 10:20] = 0.6     # parallax: its score is 0
+    score[8:22, 20:24] = 0.22         # its rim, beside it
+    score[40:50, 40:50] = 0.22        # a new object far away
+    score[8:22, 6:10] = 0.3           # a new object against the structure, half its residual
+    params = ChangeParams(min_area=20, hysteresis=0.5)
+    alone = change_mask(score, 0.2, params=params)
+    assert alone[8:22, 20:24].all()  # without the explained residual, the rim is a change
+    mask = change_mask(score, 0.2, params=params, explained=explained)
+    assert not mask[8:22, 20:24].any()
+    assert mask[40:50, 40:50].all() and mask[8:22, 6:10].all()
+    np.testing.assert_array_equal(change_candidates(score, 0.2, params=params, explained=np.zeros(SHAPE)),
+                                  change_candidates(score, 0.2, params=params))
 
 
 def test_change_mask_fills_small_holes():
