@@ -289,7 +289,8 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff, previews)
                  f"at least {MIN_EXPLAINED:.0%} of its pixels fall below the change threshold "
                  f"and those plus the pixels of ground the layer hid in the reference make up at least "
                  f"{MIN_COVERED:.0%} of it; only its pixels explained at that depth, on the layer's edge or "
-                 "disoccluded join parallax_mask, the rest stays a change candidate",
+                 "disoccluded join parallax_mask, the rest stays a change candidate; parallax pixels "
+                 "take part in their neighbours' half-maximum test with their score at the ground's depth",
          "components": _tasks.layer_components(group)})})
     # only the ground-frame arrays (dims y, x) get map coordinates
     geo = ground_geo(plan.pairing.mode, plan.references[0].geo, plan.distorted.geo)
@@ -308,6 +309,12 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff, previews)
         log.warning("%s: change threshold %.3f of the scene's range (about 0.05 where the capture registers): "
                     "the residual left on most pixels is that large, so few changes can be found; is the "
                     "reference of this capture's scene?", final, result.threshold)
+    agreement = result.tile_agreement_px_max
+    if agreement is not None and agreement > DISAGREEMENT_WARNING * plan.config.agreement:
+        log.warning("%s: tiles' paths differ from the fused one by up to %.1f px (RMS over their rows; more than %g "
+                    "times the %g px at which a tile is re-solved): the capture's rows were not registered as one "
+                    "camera path (its tile_agreement array shows where); changes in those tiles are not to be "
+                    "trusted", final, agreement, DISAGREEMENT_WARNING, plan.config.agreement)
     if result.no_evidence >= NO_EVIDENCE_WARNING:
         log.warning("%s: no evidence on %.0f %% of the capture's pixels (its change mask says 255 there): too little "
                     "of it could be registered (too small, too little valid, or off the reference)", final,
@@ -514,6 +521,11 @@ def _stages(runner, group, run, plan, resume, timings, previews):
     timings["cpu_s"] = _cpu_stages(runner, tile_stages)
     return plan, run, found
 
+
+#: Multiple of :attr:`DetectConfig.agreement` beyond which a tile's RMS
+#: disagreement with the fused path, left after the re-solves, is warned about
+#: (a band whose tiles all stray has no consensus to re-solve them around).
+DISAGREEMENT_WARNING = 5.0
 
 #: Share of a capture's pixels without evidence from which detect warns that
 #: it found almost nothing to register.

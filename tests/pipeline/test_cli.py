@@ -197,6 +197,26 @@ def test_a_capture_with_nothing_to_register_says_so(tmp_path, capsys, caplog):
     assert "gain n/a" in capsys.readouterr().out
 
 
+def test_tiles_that_are_no_one_camera_path_are_warned_about(tmp_path, caplog):
+    """A capture of three strips, each displaced from the reference by its own
+    tx (-14, 0, +14 px): each tile registers on its own, but the band's three
+    paths have no consensus to re-solve the strays around, and the fused
+    trajectory is no strip's.  detect warns; strips of one tx do not."""
+    scene = ops.aerial_scene((400, 900), seed=3).astype(np.float32)
+    np.save(tmp_path / "r.npy", scene[72:328, 66:834])
+    for name, shifts in (("one", (0, 0, 0)), ("three", (-14, 0, 14))):
+        strips = [scene[72:328, 66 + s + 256 * k:66 + s + 256 * (k + 1)] for k, s in enumerate(shifts)]
+        np.save(tmp_path / f"{name}.npy", np.concatenate(strips, axis=1))
+    args = ["--tile-size", "256", "--slow-axes", "none"]
+    with caplog.at_level(logging.WARNING, logger="rsmb"):
+        assert main(["detect", str(tmp_path / "r.npy"), str(tmp_path / "one.npy"), "-o", str(tmp_path / "a.zarr"),
+                     *args]) == 0
+        assert "tiles' paths differ from the fused one" not in caplog.text
+        assert main(["detect", str(tmp_path / "r.npy"), str(tmp_path / "three.npy"), "-o",
+                     str(tmp_path / "b.zarr"), *args]) == 0
+    assert "tiles' paths differ from the fused one by up to 14.0 px" in caplog.text
+
+
 def test_a_capture_of_another_scene_is_warned_about(tmp_path, caplog):
     """A capture of another scene than its reference's (the trial's wrong
     reference) is no clean 'done' in silence: its change threshold follows
