@@ -354,7 +354,8 @@ def _allowed_score(chi, image, k, out):
 
 def change_candidates(score, threshold, *, params=ChangeParams(), explained=None):
     """Pixels that may belong to a change: above ``hysteresis * threshold`` and at
-    least ``half_max`` times the largest score within ``half_max_window``.
+    least ``half_max`` times the largest score, or ``explained`` score, within
+    the ``half_max_window`` square around them.
 
     Local (a window of ``half_max_window // 2`` px around a pixel decides), so a
     tile computes it on its core grown by ``params.margin``.
@@ -372,7 +373,10 @@ def change_candidates(score, threshold, *, params=ChangeParams(), explained=None
         change's own do, and nothing else: motion blur spreads a raised
         structure's residual onto its neighbours as it spreads a change's, so
         a neighbour under ``half_max`` of the residual the depth explained is
-        its blurred rim, not a change of its own.
+        its blurred rim, not a change of its own.  The price: a new object of
+        less than ``half_max`` of that residual's contrast loses the side of
+        it within half the window of the structure (and all of it when the
+        rest is under ``min_area``), as it would beside a stronger change.
 
     Returns
     -------

@@ -289,8 +289,9 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff, previews)
                  f"at least {MIN_EXPLAINED:.0%} of its pixels fall below the change threshold "
                  f"and those plus the pixels of ground the layer hid in the reference make up at least "
                  f"{MIN_COVERED:.0%} of it; only its pixels explained at that depth, on the layer's edge or "
-                 "disoccluded join parallax_mask, the rest stays a change candidate; parallax pixels "
-                 "take part in their neighbours' half-maximum test with their score at the ground's depth",
+                 "disoccluded join parallax_mask, the rest stays a change candidate"
+                 + (plan.config.changes.layers and "; parallax pixels take part in their neighbours' half-maximum "
+                    "test with their score at the ground's depth" or ""),
          "components": _tasks.layer_components(group)})})
     # only the ground-frame arrays (dims y, x) get map coordinates
     geo = ground_geo(plan.pairing.mode, plan.references[0].geo, plan.distorted.geo)
@@ -312,9 +313,10 @@ def _finish(group, store, plan, result, scheduler, overwrite, geotiff, previews)
     agreement = result.tile_agreement_px_max
     if agreement is not None and agreement > DISAGREEMENT_WARNING * plan.config.agreement:
         log.warning("%s: tiles' paths differ from the fused one by up to %.1f px (RMS over their rows; more than %g "
-                    "times the %g px at which a tile is re-solved): the capture's rows were not registered as one "
-                    "camera path (its tile_agreement array shows where); changes in those tiles are not to be "
-                    "trusted", final, agreement, DISAGREEMENT_WARNING, plan.config.agreement)
+                    "times the %g px re-solve tolerance): the capture's rows were not registered as one camera path "
+                    "(its tile_agreement array shows where); those tiles' changes in the ground frame (the *_reference "
+                    "arrays, COGs and polygons) may be that far off, and their registration may be wrong", final,
+                    agreement, DISAGREEMENT_WARNING, plan.config.agreement)
     if result.no_evidence >= NO_EVIDENCE_WARNING:
         log.warning("%s: no evidence on %.0f %% of the capture's pixels (its change mask says 255 there): too little "
                     "of it could be registered (too small, too little valid, or off the reference)", final,

@@ -52,7 +52,7 @@ def _specs(grid, dims, margin=0):
         "work/tile_summary": spec((ny, nx, _SUMMARY), "float64", (1, 1, _SUMMARY), ("tile_y", "tile_x", "value"),
                                   compressed=False),
         "work/labels": spec((h, w), "int32", (t, t), ("row", "col"), compressed=False),
-        "work/explained": spec((h, w), "float32", (t, t), ("row", "col"), 0.0),
+        "work/explained": spec((h, w), "float32", (t, t), ("row", "col"), 0.0, compressed=False),
         "work/slow": spec((h, 3), "float32", (h, 3), ("y", "slow"), float("nan"), compressed=False),
         "work/tile_layers": spec((ny, nx, LAYER_SLOTS, len(LAYER_FIELDS)), "float64",
                                  (1, 1, LAYER_SLOTS, len(LAYER_FIELDS)), ("tile_y", "tile_x", "layer", "field"),
@@ -254,7 +254,7 @@ def register_task(store, tile, camera, params, changes, prior=None, band_start=N
         _array(store, "change_score")[tile.core] = found.score
         _array(store, "parallax_mask")[tile.core] = found.parallax.astype(np.uint8)
         _array(store, "work/explained")[tile.core] = (np.zeros((h, w), np.float32) if found.explained is None
-                                                      else found.explained)  # 0: nothing explained
+                                                      else found.explained)  # a chunk of 0 (nothing explained) is no file
         _array(store, "work/tile_layers")[ty, tx] = _layer_table(found.components, tile)
         _array(store, "work/tile_rows")[tile.core[0], tx] = np.concatenate(
             [result.trajectory, result.row_state[:, None]], axis=1).astype(np.float32)

@@ -199,9 +199,10 @@ def test_a_capture_with_nothing_to_register_says_so(tmp_path, capsys, caplog):
 
 def test_tiles_that_are_no_one_camera_path_are_warned_about(tmp_path, caplog):
     """A capture of three strips, each displaced from the reference by its own
-    tx (-14, 0, +14 px): each tile registers on its own, but the band's three
-    paths have no consensus to re-solve the strays around, and the fused
-    trajectory is no strip's.  detect warns; strips of one tx do not."""
+    tx (-14, 0, +14 px): each tile registers on its own, the fused path is the
+    middle strip's, and the outer two stray by 14 px, which the band's median
+    strayness (14 px) keeps from being re-solved.  detect warns; strips of
+    one tx do not."""
     scene = ops.aerial_scene((400, 900), seed=3).astype(np.float32)
     np.save(tmp_path / "r.npy", scene[72:328, 66:834])
     for name, shifts in (("one", (0, 0, 0)), ("three", (-14, 0, 14))):

@@ -329,6 +329,18 @@ def test_the_rim_of_what_the_depth_explained_is_not_a_change_of_its_own():
                                   change_candidates(score, 0.2, params=params))
 
 
+def test_a_faint_object_beside_what_the_depth_explained_loses_its_near_side():
+    """The rule's price, as documented: an object of 0.22 (under half of the
+    0.6 the depth explained beside it) keeps only its pixels more than half
+    the window (7 px) from the structure."""
+    score = np.zeros(SHAPE, np.float32)
+    explained = np.zeros(SHAPE, np.float32)
+    explained[10:30, 10:20] = 0.6
+    score[10:30, 20:40] = 0.22        # against the structure, 20 px wide
+    mask = change_mask(score, 0.2, params=ChangeParams(min_area=20, hysteresis=0.5), explained=explained)
+    assert not mask[10:30, 20:27].any() and mask[10:30, 27:40].all()
+
+
 def test_change_mask_fills_small_holes():
     score = np.zeros(SHAPE, np.float32)
     score[10:30, 10:30] = 0.5
