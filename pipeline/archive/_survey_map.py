@@ -63,30 +63,29 @@ def preload():
     never raises: an import that fails here fails again, and is reported, when
     the map is drawn."""
     try:
-        import matplotlib
-
-        matplotlib.use("Agg", force=False)
-        import matplotlib.backends.backend_agg  # noqa: F401
-        import matplotlib.collections  # noqa: F401
-        import matplotlib.figure  # noqa: F401
-        import matplotlib.lines  # noqa: F401
-        import matplotlib.patches  # noqa: F401
-        import matplotlib.path  # noqa: F401
+        _matplotlib()
     except Exception:  # noqa: BLE001 - write_map reports it
         pass
+
+
+def _matplotlib():
+    """matplotlib on its Agg backend (no display) with every module the map
+    draws with imported (:func:`_path`, :func:`_patches` and the canvas that
+    writes the PNG too); returns ``(Figure, Line2D, Patch)``."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.backends.backend_agg  # noqa: F401
+    from matplotlib import collections, figure, lines, patches, path  # noqa: F401
+
+    return figure.Figure, lines.Line2D, patches.Patch
 
 
 def write_map(path, history, *, width_px=900):
     """Draw ``history`` (a :class:`History`) into ``path`` (PNG), its latest night's footprints in blue.
 
     Returns the path, or None when the history has no footprint (nothing to draw)."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    from matplotlib.figure import Figure
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Patch
-
+    Figure, Line2D, Patch = _matplotlib()
     if not history.footprints:
         return None
     night = max(f.night for f in history.footprints)

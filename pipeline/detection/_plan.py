@@ -46,7 +46,8 @@ class DetectConfig:
         A tile whose path differs from its band's by more than this (px: the
         95th percentile over its rows of the displacement of the row ends), and
         by more than three times the band's median, is re-solved around the
-        others' path.
+        others' path; a tile left more than five times this from the fused
+        path is warned about.  A positive number.
     """
 
     registration: RegistrationParams = field(default_factory=RegistrationParams)
@@ -55,6 +56,11 @@ class DetectConfig:
     overlap: int | None = None
     focal: float | None = None
     agreement: float = 2.0
+
+    def __post_init__(self):
+        a = self.agreement
+        if isinstance(a, bool) or not isinstance(a, (int, float, np.integer, np.floating)) or not 0 < a < np.inf:
+            raise ops.ParameterError(f"agreement: expected a positive number of pixels, got {a!r}")
 
 
 @dataclass(frozen=True)

@@ -107,3 +107,14 @@ def test_errors_are_public_and_defined_once(tmp_path):
         rsmb.detect(missing, missing, tmp_path / "o.zarr")
     with pytest.raises(rsmb.errors.ParameterError, match="threshold"):
         ops.ChangeParams(threshold="median")
+
+
+@pytest.mark.parametrize("agreement", [0, -1.0, float("nan"), float("inf"), "2", True])
+def test_a_bad_agreement_tolerance_is_refused_when_configured(agreement):
+    """The tolerance tiles are re-solved at (and warned about at five times)
+    must be a positive number of pixels: refused before any work."""
+    import rsmb.errors
+
+    with pytest.raises(rsmb.errors.ParameterError, match="agreement: expected a positive number of pixels"):
+        rsmb.DetectConfig(agreement=agreement)
+    assert rsmb.DetectConfig(agreement=np.float32(3)).agreement == 3
