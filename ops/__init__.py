@@ -53,7 +53,7 @@ from .changes._threshold import kapur_threshold, kapur_threshold_histogram
 
 #: Version of the kernels' results: raised whenever a change to ops alters what
 #: a run computes, so that ``--resume`` never mixes tiles of two versions.
-KERNEL_VERSION = 24
+KERNEL_VERSION = 25
 
 __all__ = [
     "KERNEL_VERSION",

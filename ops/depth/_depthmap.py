@@ -77,6 +77,11 @@ class DepthMapParams:
         Share of the valid pixels that a depth must bring from above the
         threshold to below it for every active pixel to be swept (else only
         the windows of pixels above the threshold).
+    min_seed : int
+        Pixels above the threshold open a window to sweep only in 8-connected
+        groups of at least this many: an isolated pixel or two (noise, an
+        interpolation error at an edge) is no structure with a depth, and
+        each one's window is swept at every depth.
     """
 
     max_inverse_depth: float = 3.0
@@ -85,10 +90,13 @@ class DepthMapParams:
     window: int = 7
     gain: float = 0.85
     min_share: float = 0.0005
+    min_seed: int = 3
 
     def __post_init__(self):
         if not 2 <= self.max_depths < _BIG:
             raise ParameterError(f"max_depths: expected 2 to {_BIG - 1} depths, got {self.max_depths!r}")
+        if isinstance(self.min_seed, bool) or not (isinstance(self.min_seed, int) and self.min_seed >= 1):
+            raise ParameterError(f"min_seed: expected a whole number of pixels >= 1, got {self.min_seed!r}")
 
 
 @dataclass
@@ -161,7 +169,7 @@ def depth_map(registration, reference, distorted, *, camera, threshold, referenc
     qs = np.linspace(0.0, params.max_inverse_depth, max(count, 2))
     cost_plane = _window_cost(np.where(valid, residual, tau), tau, params.window)
     scene = rows.scene(reference, _geometry(camera, reference_origin_yx, distorted_origin_yx))
-    candidates = active & _active(residual, valid, 2.0 * tau, params.window)  # windows of pixels above tau
+    candidates = active & _seeded(residual, valid, tau, params.window, params.min_seed)
     if not candidates.any():
         return out
     take, chosen, depth = _takes(scene, g, candidates, cost_plane, tau, qs, params)
@@ -229,6 +237,18 @@ def _active(residual, valid, tau, window):
     """Pixels whose window holds residual above half the threshold: where the
     plane leaves structure unexplained."""
     seed = (valid & (residual > 0.5 * tau)).astype(np.uint8)
+    return (cv2.dilate(seed, np.ones((window, window), np.uint8)) > 0) & valid
+
+
+def _seeded(residual, valid, tau, window, min_seed):
+    """Pixels whose window holds a group of at least ``min_seed`` 8-connected
+    pixels with residual above the threshold ``tau``."""
+    seed = (valid & (residual > tau)).astype(np.uint8)
+    if min_seed > 1 and seed.any():
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(seed, connectivity=8, ltype=cv2.CV_32S)
+        large = stats[:, cv2.CC_STAT_AREA] >= min_seed
+        large[0] = False
+        seed = large[labels].astype(np.uint8)
     return (cv2.dilate(seed, np.ones((window, window), np.uint8)) > 0) & valid
 
 

@@ -11,7 +11,8 @@ import pytest
 from scipy import ndimage
 
 from rsmb import ops
-from rsmb.ops.depth._depthmap import _BIG, _INDEX, _Best, _Fit, _geometry, _RowPoses, _runs, _sweep, _window_cost
+from rsmb.ops.depth._depthmap import (_BIG, _INDEX, _Best, _Fit, _geometry, _RowPoses, _runs, _seeded, _sweep,
+                                      _window_cost)
 
 from .test_layers import EXPOSURE, SHAPE, _path  # the same scene and camera path
 
@@ -133,6 +134,50 @@ def test_no_residual_no_work():
     dense = ops.depth_map(reg, pair.reference, pair.distorted, camera=pair.camera, threshold=1.0)
     assert dense.depths == 0 and (dense.inverse_depth == 1.0).all()
     np.testing.assert_array_equal(dense.registered, reg.registered)
+
+
+def test_isolated_pixels_open_no_window():
+    """Only 8-connected groups of ``min_seed`` pixels above the threshold open
+    a window to sweep: a lone pixel and a pair do not, a diagonal run of three
+    does, and a pixel without data counts for no group."""
+    residual = np.zeros((40, 60), np.float32)
+    valid = np.ones(residual.shape, bool)
+    residual[5, 5] = 1.0  # alone
+    residual[20, 10:12] = 1.0  # a pair
+    residual[[30, 31, 32], [40, 41, 42]] = 1.0  # three, corner to corner
+    residual[10, 50:53] = 1.0  # three, one of them without data
+    valid[10, 52] = False
+    seeded = _seeded(residual, valid, 0.5, 7, 3)
+    group = np.zeros(residual.shape, bool)
+    group[[30, 31, 32], [40, 41, 42]] = True
+    np.testing.assert_array_equal(seeded, ndimage.binary_dilation(group, np.ones((7, 7), bool)) & valid)
+    every = _seeded(residual, valid, 0.5, 7, 1)  # min_seed 1: every pixel above the threshold
+    np.testing.assert_array_equal(every, ndimage.binary_dilation(valid & (residual > 0.5), np.ones((7, 7), bool))
+                                  & valid)
+    for bad in (0, -1, 2.5, True, "3"):
+        with pytest.raises(ops.ParameterError, match="min_seed"):
+            ops.DepthMapParams(min_seed=bad)
+
+
+def test_lone_pixels_keep_the_plane():
+    """Lone pixels far above the threshold on a flat scene take no depth and
+    keep the plane's values in their windows."""
+    pair = ops.synthesize_pair(SHAPE, motion="inplane", exposure=EXPOSURE, changes=6, noise=0.002, seed=43,
+                               interpolation="cubic")
+    reg, plain, _ = _run(pair)
+    ok = reg.valid & np.isfinite(reg.registered)
+    far = ok & ~ndimage.binary_dilation(pair.change_mask | ~ok, np.ones((31, 31), bool))
+    rows, cols = np.nonzero(far)
+    pick = np.random.default_rng(1).choice(len(rows), 12, replace=False)
+    g = pair.distorted.astype(np.float32).copy()
+    g[rows[pick], cols[pick]] += 0.4
+    spikes = np.zeros(g.shape, bool)
+    spikes[rows[pick], cols[pick]] = True
+    windows = ndimage.binary_dilation(spikes, np.ones((7, 7), bool))
+    kw = dict(camera=pair.camera, threshold=plain.threshold)
+    dense = ops.depth_map(reg, pair.reference, g, **kw)
+    np.testing.assert_array_equal(dense.registered[windows], reg.registered[windows])
+    assert (dense.inverse_depth[windows] == 1.0).all()
 
 
 def test_depth_count_fits_the_sweeps_indices():
