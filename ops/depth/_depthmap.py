@@ -169,7 +169,8 @@ def depth_map(registration, reference, distorted, *, camera, threshold, referenc
     qs = np.linspace(0.0, params.max_inverse_depth, max(count, 2))
     cost_plane = _window_cost(np.where(valid, residual, tau), tau, params.window)
     scene = rows.scene(reference, _geometry(camera, reference_origin_yx, distorted_origin_yx))
-    candidates = active & _seeded(residual, valid, tau, params.window, params.min_seed)
+    # the windows of groups of pixels above tau
+    candidates = active & _active(residual, valid, 2.0 * tau, params.window, params.min_seed)
     if not candidates.any():
         return out
     take, chosen, depth = _takes(scene, g, candidates, cost_plane, tau, qs, params)
@@ -233,17 +234,11 @@ def model_values(registration, reference, mask, *, camera, reference_origin_yx=(
     return render_at(scene, 1.0, np.asarray(mask, bool))
 
 
-def _active(residual, valid, tau, window):
-    """Pixels whose window holds residual above half the threshold: where the
-    plane leaves structure unexplained."""
+def _active(residual, valid, tau, window, min_seed=1):
+    """Pixels whose window holds residual above half the threshold ``tau``
+    (where the plane leaves structure unexplained), in a group of at least
+    ``min_seed`` 8-connected such pixels."""
     seed = (valid & (residual > 0.5 * tau)).astype(np.uint8)
-    return (cv2.dilate(seed, np.ones((window, window), np.uint8)) > 0) & valid
-
-
-def _seeded(residual, valid, tau, window, min_seed):
-    """Pixels whose window holds a group of at least ``min_seed`` 8-connected
-    pixels with residual above the threshold ``tau``."""
-    seed = (valid & (residual > tau)).astype(np.uint8)
     if min_seed > 1 and seed.any():
         _, labels, stats, _ = cv2.connectedComponentsWithStats(seed, connectivity=8, ltype=cv2.CV_32S)
         large = stats[:, cv2.CC_STAT_AREA] >= min_seed

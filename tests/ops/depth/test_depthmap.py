@@ -11,7 +11,7 @@ import pytest
 from scipy import ndimage
 
 from rsmb import ops
-from rsmb.ops.depth._depthmap import (_BIG, _INDEX, _Best, _Fit, _geometry, _RowPoses, _runs, _seeded, _sweep,
+from rsmb.ops.depth._depthmap import (_BIG, _INDEX, _active, _Best, _Fit, _geometry, _RowPoses, _runs, _sweep,
                                       _window_cost)
 
 from .test_layers import EXPOSURE, SHAPE, _path  # the same scene and camera path
@@ -147,11 +147,11 @@ def test_isolated_pixels_open_no_window():
     residual[[30, 31, 32], [40, 41, 42]] = 1.0  # three, corner to corner
     residual[10, 50:53] = 1.0  # three, one of them without data
     valid[10, 52] = False
-    seeded = _seeded(residual, valid, 0.5, 7, 3)
+    seeded = _active(residual, valid, 1.0, 7, 3)  # above half of 1.0
     group = np.zeros(residual.shape, bool)
     group[[30, 31, 32], [40, 41, 42]] = True
     np.testing.assert_array_equal(seeded, ndimage.binary_dilation(group, np.ones((7, 7), bool)) & valid)
-    every = _seeded(residual, valid, 0.5, 7, 1)  # min_seed 1: every pixel above the threshold
+    every = _active(residual, valid, 1.0, 7)  # min_seed 1: every pixel above the threshold
     np.testing.assert_array_equal(every, ndimage.binary_dilation(valid & (residual > 0.5), np.ones((7, 7), bool))
                                   & valid)
     for bad in (0, -1, 2.5, True, "3"):
@@ -178,6 +178,25 @@ def test_lone_pixels_keep_the_plane():
     dense = ops.depth_map(reg, pair.reference, g, **kw)
     np.testing.assert_array_equal(dense.registered[windows], reg.registered[windows])
     assert (dense.inverse_depth[windows] == 1.0).all()
+
+
+def test_lone_pixels_render_no_depth():
+    """A registration that explains every pixel but a few lone ones renders no
+    depth at all; swept with ``min_seed`` 1 (every pixel above the threshold
+    a seed), the same pixels are rendered at every depth."""
+    pair = ops.synthesize_pair((96, 96), motion="inplane", exposure=8.0, changes=0, noise=0.0, seed=3,
+                               interpolation="cubic")
+    reg = ops.register(pair.reference, pair.distorted, camera=pair.camera)
+    ok = reg.valid & np.isfinite(reg.registered)
+    g = pair.distorted.astype(np.float32).copy()
+    threshold = 0.2
+    assert np.abs(g - reg.registered)[ok].max() < 0.5 * threshold  # nothing else active
+    for y, x in ((30, 30), (30, 60), (60, 45)):
+        assert ok[y, x]
+        g[y, x] += 0.5
+    kw = dict(camera=pair.camera, threshold=threshold)
+    assert ops.depth_map(reg, pair.reference, g, **kw).depths == 0
+    assert ops.depth_map(reg, pair.reference, g, params=ops.DepthMapParams(min_seed=1), **kw).depths > 0
 
 
 def test_depth_count_fits_the_sweeps_indices():
