@@ -167,7 +167,7 @@ def _gather_valid(stack, slot, shift_y, shift_x, y, x0, out, keep):
         r = y - shift_y[k]
         if r < 0 or r >= hr:  # above or below the images: no pixel is valid
             valid[:] = 0
-            break
+            break  # (so every pose of a row with a valid pixel reads inside them)
         c0 = x0 - shift_x[k]
         lo, hi = _inside(c0, n, wr)
         valid[:lo] = 0
@@ -176,12 +176,11 @@ def _gather_valid(stack, slot, shift_y, shift_x, y, x0, out, keep):
         for j in range(hi - lo):
             flags[j] &= np.uint8(src[j] == src[j])  # 0 on NaN
     zero = np.float32(0.0)
+    if not valid.any():
+        out[:, :] = zero
+        return valid
     for k in range(k_count):
-        r = y - shift_y[k]
-        if r < 0 or r >= hr:
-            out[k, :] = zero
-            continue
-        c0 = x0 - shift_x[k]
+        r, c0 = y - shift_y[k], x0 - shift_x[k]
         lo, hi = _inside(c0, n, wr)
         out[k, :lo] = zero
         out[k, hi:] = zero

@@ -21,7 +21,7 @@ import numpy as np
 
 import math
 
-from .._warp import _warp_into
+from .._warp import _inside, _warp_into
 from ._rowsolve import SOLVED, _column, _Columns, _solve
 
 __all__ = []
@@ -267,8 +267,7 @@ def _lattice_columns(source, g_valid, a):
     x0 = source.x0 - hi
     good = np.empty((max(distinct, 1), width), np.bool_)  # False on no-data and beyond the image
     spoilt = np.zeros(max(distinct, 1), np.bool_)
-    inside_lo = min(max(-x0, 0), width)  # columns [inside_lo, inside_hi) lie inside the image
-    inside_hi = max(min(wr - x0, width), inside_lo)
+    inside_lo, inside_hi = _inside(x0, width, wr)  # columns [inside_lo, inside_hi) lie inside the image
     if distinct == 0:
         src[:] = 0.0
         good[:] = True
