@@ -87,6 +87,21 @@ class IntensityScale:
             out[values >= np.float32(high)] = np.nan
         return out
 
+    def cell_means(self, sums, lows, highs, count, image):
+        """The means of cells of ``count`` ingested values of ``image`` each,
+        from their sums (float64, NaN where a cell holds no-data) and their
+        least and largest values, on the common scale: float32, NaN where a
+        cell holds no-data or a clipped value (see :meth:`apply`).  Cells of
+        one value are :meth:`apply`'s values, bit for bit."""
+        low, high = self.reference_clip if image == "reference" else self.capture_clip
+        out = (np.asarray(sums, np.float64) / count * np.float64(np.float32(SPAN / (self.hi - self.lo))))
+        out = out.astype(np.float32)
+        if low is not None:
+            out[np.asarray(lows) <= np.float32(low)] = np.nan
+        if high is not None:
+            out[np.asarray(highs) >= np.float32(high)] = np.nan
+        return out
+
     def scaled(self, value):
         """One ingested value (a clip level) on the common scale."""
         return float(np.float32(value) * np.float32(SPAN / (self.hi - self.lo)))

@@ -12,7 +12,7 @@ from ._georef import (
 )
 from ._grid import Tile, TileGrid
 from ._pairing import Pairing, pair_images
-from ._ingest import (WindowStats, block_overview, check_stats, ingest_core, overview_cells, read_clipped,
+from ._ingest import (CellSums, WindowStats, cell_sums, check_stats, ingest_core, overview_from_sums, read_clipped,
                       read_padded)
 from ._chunkfiles import ChunkFiles, chunk_files
 from ._geo import GeoInfo, write_spatial_coords
@@ -59,8 +59,9 @@ __all__ = [
     "WindowStats",
     "check_stats",
     "ingest_core",
-    "overview_cells",
-    "block_overview",
+    "CellSums",
+    "cell_sums",
+    "overview_from_sums",
     "read_clipped",
     "read_padded",
     "ChunkFiles",

@@ -21,7 +21,7 @@ from rsmb.ops._intensity import FILL_REACH, FILL_SQUARE
 
 from ._io import read_window
 
-__all__ = ["ingest_core", "block_overview", "overview_cells", "read_clipped", "read_padded", "check_stats", "WindowStats"]
+__all__ = ["ingest_core", "CellSums", "cell_sums", "overview_from_sums", "read_clipped", "read_padded", "check_stats", "WindowStats"]
 
 
 @dataclass(frozen=True)
@@ -86,11 +86,14 @@ def read_padded(array, rows, cols):
     return out
 
 
-def ingest_core(read, tile, array, offset=(0, 0)):
+def ingest_core(read, tile, array, offset=(0, 0), overview=None):
     """Write ``tile``'s core (a tile or a block of tiles) of ``array`` from
     ``read(rows, cols)`` (float32, NaN for nodata) of the source window at the
     core less ``offset`` (an array padded by a margin holds source pixel (r, c)
-    at (r + margin, c + margin)).  Returns :class:`WindowStats` of the core."""
+    at (r + margin, c + margin)).  Returns (:class:`WindowStats` of the core,
+    its :func:`cell_sums` of the array's overview given ``overview``, a
+    (factor, phase) pair, else None): the overview made from the values
+    written, without reading them again."""
     rows, cols = tile.core
     m = FILL_SQUARE + FILL_REACH  # the margin that decides which zeros of the core are fill
     data = read(slice(rows.start - offset[0] - m, rows.stop - offset[0] + m),
@@ -100,7 +103,8 @@ def ingest_core(read, tile, array, offset=(0, 0)):
     if fill.any():
         data = np.where(fill[m:-m, m:-m], np.float32(np.nan), data)
     array[tile.core] = data
-    return _stats(data)
+    cells = None if overview is None else cell_sums(data, (rows.start, cols.start), *overview)
+    return _stats(data), cells
 
 
 #: A capture with fewer valid pixels than this share of its own has too
@@ -122,29 +126,78 @@ def check_stats(stats, path, pixels=None):
         raise InputError(f"{path}: is constant (every valid pixel equals {stats.low:g})")
 
 
-def overview_cells(data, origin_yx, factor, phase=0):
-    """The mean of every ``factor`` x ``factor`` cell of an array's overview that
-    lies inside the window ``data`` at ``origin_yx`` (array rows, columns):
-    cells start at rows and columns ``phase + j * factor``.  Returns ((first
-    cell row, col), cells float32 (n, m)), NaN where a cell holds nodata."""
-    first = [-(-(o - phase) // factor) for o in origin_yx]  # ceil
-    start = [phase + f * factor - o for f, o in zip(first, origin_yx)]
-    count = [max((n - s) // factor, 0) for n, s in zip(data.shape, start)]
-    part = np.asarray(data[start[0]:start[0] + count[0] * factor, start[1]:start[1] + count[1] * factor])
-    cells = part.reshape(count[0], factor, count[1], factor).mean(axis=(1, 3), dtype=np.float64)
-    return (first[0], first[1]), cells.astype(np.float32)
+@dataclass(frozen=True)
+class CellSums:
+    """The part of an overview's cells (``factor`` x ``factor`` px, starting
+    at rows and columns ``phase + j * factor`` of the array) that one window
+    holds: per cell touched, from cell ``first`` (row, column) on, the float64
+    sum of its values there (NaN where one is no-data) and their least and
+    largest.  Windows that tile an array add up to its overview
+    (:func:`overview_from_sums`)."""
+
+    first: tuple
+    sums: np.ndarray
+    lows: np.ndarray
+    highs: np.ndarray
 
 
-def block_overview(array, core, factor, phase=0):
-    """The cells of ``array``'s overview (:func:`overview_cells`) that start in
-    the block ``core`` (row and column slices): the block is read through the
-    end of its last cell, the rows and columns of the cells that straddle its
-    far edges (none when the cells end on its edges: no neighbouring chunk
-    is read), so that blocks together give the overview of the whole array."""
-    (r0, r1), (c0, c1) = [(s.start, s.stop) for s in core]
-    ends = [phase + -(-(stop - phase) // factor) * factor for stop in (r1, c1)]  # of the last cell starting before stop
-    data = array[r0:min(ends[0], array.shape[0]), c0:min(ends[1], array.shape[1])]
-    (row, col), cells = overview_cells(data, (r0, c0), factor, phase)
-    rows = max(0, min(cells.shape[0], -(-(r1 - phase) // factor) - row))
-    cols = max(0, min(cells.shape[1], -(-(c1 - phase) // factor) - col))
-    return (row, col), cells[:rows, :cols]
+def _reduce_cells(x, origin, factor, phase, axis, ufunc, dtype):
+    """``ufunc`` reduced over the run of each cell along ``axis`` (0 or 1) of
+    ``x``, whose index 0 is array index ``origin``: the part of a cell that
+    starts before it, the whole cells (rows as one reshaped reduction,
+    columns by strided slices, which stay fast for small factors), a tail.
+    Returns (index of the first cell touched, reduced array of ``dtype``)."""
+    def cut(a, b):
+        return x[a:b] if axis == 0 else x[:, a:b]
+
+    n = x.shape[axis]
+    first = (origin - phase) // factor  # the cell holding index 0 (-1: before the array's first cell)
+    head = min(phase + (first + 1) * factor - origin, n)  # x's indices in that cell
+    whole = (n - head) // factor
+    parts = [ufunc.reduce(cut(0, head), axis=axis, dtype=dtype, keepdims=True)] if first >= 0 else []
+    if whole:
+        part = cut(head, head + whole * factor)
+        if axis == 0:
+            parts.append(ufunc.reduce(part.reshape(whole, factor, -1), axis=1, dtype=dtype))
+        else:
+            out = part[:, 0::factor].astype(dtype)
+            for k in range(1, factor):
+                ufunc(out, part[:, k::factor], out=out)
+            parts.append(out)
+    if head + whole * factor < n:
+        parts.append(ufunc.reduce(cut(head + whole * factor, n), axis=axis, dtype=dtype, keepdims=True))
+    return max(first, 0), np.concatenate(parts, axis=axis)
+
+
+def cell_sums(data, origin_yx, factor, phase=0):
+    """The :class:`CellSums` of the window ``data`` (float32, NaN for no-data)
+    at ``origin_yx`` (array rows, columns) of an array's overview."""
+    data = np.asarray(data, dtype=np.float32)
+    if factor == 1:
+        return CellSums(tuple(origin_yx), data.astype(np.float64), data, data)
+    out = []
+    for ufunc, dtype in ((np.add, np.float64), (np.minimum, np.float32), (np.maximum, np.float32)):
+        row, rows = _reduce_cells(data, origin_yx[0], factor, phase, 0, ufunc, dtype)
+        col, cells = _reduce_cells(rows, origin_yx[1], factor, phase, 1, ufunc, dtype)
+        out.append(cells)
+    return CellSums((row, col), *out)
+
+
+def overview_from_sums(parts, shape, factor, phase=0):
+    """The whole cells of the overview of an array of ``shape`` from the
+    :class:`CellSums` of windows that tile it: (sums float64, lows, highs)
+    per cell, the cells of rows and columns ``phase + j * factor`` that end
+    inside the array."""
+    n = [max((s - phase) // factor, 0) for s in shape]
+    sums = np.zeros(n, np.float64)
+    lows = np.full(n, np.inf, np.float32)
+    highs = np.full(n, -np.inf, np.float32)
+    for part in parts:  # in the order given: the sums' bits depend on it
+        (r, c), (h, w) = part.first, part.sums.shape
+        h, w = min(h, n[0] - r), min(w, n[1] - c)  # cells beyond the array's last whole one dropped
+        if h > 0 and w > 0:
+            at = (slice(r, r + h), slice(c, c + w))
+            sums[at] += part.sums[:h, :w]
+            np.fmin(lows[at], part.lows[:h, :w], out=lows[at])
+            np.fmax(highs[at], part.highs[:h, :w], out=highs[at])
+    return sums, lows, highs

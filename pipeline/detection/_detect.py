@@ -50,7 +50,7 @@ from . import _tasks
 from ._tasks import _specs, _tile_done, _tile_results
 from ._fuse import _agreement, _fuse, _outliers
 from ._outputs import _check_outputs, _finished, ground_geo, write_products
-from ._overview import slow_stage
+from ._overview import overview_specs, slow_stage
 from ._plan import VERSION, DetectConfig, DetectResult, _plan
 from .._scheduler import WORKER_TIMEOUT, check_scheduler, open_runner
 from ..report._previews import preview_arrays, write_previews
@@ -76,18 +76,24 @@ def _ingest(runner, group, run, plan, timings):
     capture on its own grid, the reference resampled onto it (with a margin
     around it when georeferenced).  Returns the run's store with the two
     images' common intensity scale and clip levels (:func:`ops.intensity_scale`),
-    recorded in the ``intensity`` attribute."""
+    recorded in the ``intensity`` attribute, and the blocks' parts of the
+    overviews the slow part is found on (see :func:`slow_stage`; None when
+    resumed after the ingest or when no slow part is asked for)."""
     t0 = time.perf_counter()
+    cells = None
     if group.attrs.get("ingest_complete"):
         log.info("ingest: already complete (resume)")
         scale = ops.IntensityScale.from_dict(group.attrs["intensity"])
     else:
-        m = plan.margin
+        m, specs = plan.margin, overview_specs(plan) or {}
         capture = functools.partial(tiles.read_clipped, plan.distorted.path, plan.shape)
-        jobs = [(run, "ingest/distorted", capture, b, (0, 0)) for b in plan.blocks]
-        jobs += [(run, "ingest/reference", plan.pairing.reference_window, b, (m, m)) for b in plan.reference_blocks]
-        stats = runner.map("ingest", _tasks.ingest_task, jobs)
+        jobs = [(run, "ingest/distorted", capture, b, (0, 0), specs.get("capture")) for b in plan.blocks]
+        jobs += [(run, "ingest/reference", plan.pairing.reference_window, b, (m, m), specs.get("reference"))
+                 for b in plan.reference_blocks]
+        stats, parts = zip(*runner.map("ingest", _tasks.ingest_task, jobs))
         n = len(plan.blocks)
+        if specs:
+            cells = {"capture": list(parts[:n]), "reference": list(parts[n:])}
         names = (", ".join(r.path for r in plan.references), plan.distorted.path)
         capture_stats, reference_stats = sum(stats[1:n], stats[0]), sum(stats[n + 1:], stats[n])
         tiles.check_stats(capture_stats, names[1], pixels=plan.shape[0] * plan.shape[1])
@@ -95,7 +101,7 @@ def _ingest(runner, group, run, plan, timings):
         scale = ops.intensity_scale(reference_stats, capture_stats, names=names)
         group.update_attributes({"intensity": tiles.jsonable(scale.as_dict()), "ingest_complete": True})
     timings["ingest_s"] = time.perf_counter() - t0
-    return dataclasses.replace(run, intensity=scale)
+    return dataclasses.replace(run, intensity=scale), cells
 
 
 def _band_starts(runner, run, plan, todo):
@@ -328,8 +334,7 @@ class _Beside:
     :meth:`result` waits for it (starting it if need be) and raises what it
     raised.  For work that needs only the inputs, such as the previews (read
     and reduced on one thread): made beside the stages, it takes a core
-    while a stage leaves one idle (the overview's reads, the slow part's one
-    task) instead of adding to the run's serial end.  A daemon: a run that
+    while a stage leaves one idle (the slow part's one task) instead of adding to the run's serial end.  A daemon: a run that
     fails does not wait for it."""
 
     def __init__(self, func, *args):
@@ -508,10 +513,10 @@ def _stages(runner, group, run, plan, resume, timings, previews):
     """Stages 2 to 5 on ``runner`` (a :class:`_Counted`), in order: the plan
     with the halo the rows need, the run store, and a :class:`_Found`.
     ``previews`` (a :class:`_Beside`) is started after the ingest, whose
-    tasks keep every core busy, beside the overview and the slow part."""
-    run = _ingest(runner, group, run, plan, timings)
+    tasks keep every core busy, beside the slow part."""
+    run, cells = _ingest(runner, group, run, plan, timings)
     previews.start()
-    slow_stage(runner, group, run, plan, timings)
+    slow_stage(runner, group, run, plan, timings, cells)
     halo = plan.grid.halo
     plan = plan.for_rows(group["work/slow"][:])  # the halo the rows need, the slow part known
     if plan.grid.halo != halo:

@@ -17,12 +17,13 @@ import time
 import numpy as np
 
 from rsmb import ops
+from rsmb import tiles
 
 from . import _tasks
 
 log = logging.getLogger("rsmb")
 
-__all__ = ["overview_factor", "slow_stage"]
+__all__ = ["overview_factor", "overview_specs", "slow_stage"]
 
 #: The overview's smaller side is at least this many pixels.
 OVERVIEW_SIDE = 512
@@ -44,26 +45,29 @@ def overview_factor(shape):
     return factor
 
 
-def _overview(runner, run, name, blocks, shape, phase, factor):
-    """The overview of the ingested array ``name`` (of ``shape``), its cells
-    starting at rows and columns ``phase + j * factor``: one task per block."""
-    parts = runner.map("overview", _tasks.overview_task, [(run, name, b, factor, phase) for b in blocks])
-    out = np.full([(n - phase) // factor for n in shape], np.nan, dtype=np.float32)
-    for (row, col), cells in parts:
-        out[row:row + cells.shape[0], col:col + cells.shape[1]] = cells
-    return out
+def overview_specs(plan):
+    """{"capture": (factor, phase), "reference": (factor, phase)}: how each
+    ingested array's overview cells lie (the reference's aligned with the
+    capture's through its margin); None when no slow part is asked for."""
+    if not plan.params.slow_axes:
+        return None
+    factor = overview_factor(plan.shape)
+    return {"capture": (factor, 0), "reference": (factor, plan.margin % factor)}
 
 
-def slow_stage(runner, group, run, plan, timings):
+def slow_stage(runner, group, run, plan, timings, cells=None):
     """Stage 2b: the slow part of the path (``plan.params.slow_axes``) from the
     overviews of the ingested capture and reference on the common intensity
     scale, written to the store's ``work/slow`` (rx, ry in degrees, ty in px
-    per capture row; NaN when there is none)."""
+    per capture row; NaN when there is none).  ``cells``: the overviews'
+    :class:`tiles.CellSums` per block as the ingest made them ({"capture":
+    [...], "reference": [...]}, in the plan's block order), else (a resumed
+    run) made again from the store."""
     t0 = time.perf_counter()
     if not plan.params.slow_axes:
         return
     if not group.attrs.get("slow_complete"):
-        group["work/slow"][:] = _find_slow(runner, run, plan)
+        group["work/slow"][:] = _find_slow(runner, run, plan, cells)
         group.attrs["slow_complete"] = True
     timings["slow_s"] = time.perf_counter() - t0
     found = group["work/slow"][:]
@@ -74,15 +78,22 @@ def slow_stage(runner, group, run, plan, timings):
         log.info("slow out-of-plane rotation: none found")
 
 
-def _find_slow(runner, run, plan):
+def _find_slow(runner, run, plan, cells):
     """(H, 3) float32: rx, ry, ty of every capture row, NaN without a slow part.
-    The overviews are made one task per block, the fit is one task of its own
-    (it runs on the scheduler's workers, with their one-thread settings)."""
-    factor, margin = overview_factor(plan.shape), plan.margin
-    phase = margin % factor  # reference cells aligned with the capture's
-    ref_shape = (plan.shape[0] + 2 * margin, plan.shape[1] + 2 * margin)
-    capture = _overview(runner, run, "capture", plan.blocks, plan.shape, 0, factor)
-    reference = _overview(runner, run, "reference", plan.reference_blocks, ref_shape, phase, factor)
+    The overviews come from ``cells`` or one task per block; the fit is one
+    task of its own (it runs on the scheduler's workers, with their
+    one-thread settings)."""
+    specs, margin = overview_specs(plan), plan.margin
+    blocks = {"capture": plan.blocks, "reference": plan.reference_blocks}
+    shapes = {"capture": plan.shape, "reference": (plan.shape[0] + 2 * margin, plan.shape[1] + 2 * margin)}
+    if cells is None:
+        jobs = [(run, name, b, *specs[name]) for name in ("capture", "reference") for b in blocks[name]]
+        parts = runner.map("overview", _tasks.overview_task, jobs)
+        n = len(blocks["capture"])
+        cells = {"capture": parts[:n], "reference": parts[n:]}
+    capture, reference = (run.intensity.cell_means(*tiles.overview_from_sums(cells[name], shapes[name], *specs[name]),
+                                                   specs[name][0] ** 2, name) for name in ("capture", "reference"))
+    factor, phase = specs["reference"]
     offset = -((margin - phase) // factor)  # the reference overview's cell 0 in capture cells
     return runner.map("slow", _slow_task, [(reference, capture, offset, factor, plan.shape, plan.camera,
                                             plan.params.slow_axes, plan.params.slow_search)])[0]

@@ -159,29 +159,21 @@ def cpu_timed(func, *args):
     return out, time.thread_time() - start
 
 
-def ingest_task(store, name, read, block, offset):
+def ingest_task(store, name, read, block, offset, overview=None):
     """Ingest one block of the array ``name`` from ``read(rows, cols)`` (see
-    :func:`tiles.ingest_core`).  Returns its WindowStats."""
-    return ingest_core(read, block, _array(store, name), offset)
+    :func:`tiles.ingest_core`).  Returns its WindowStats and, given
+    ``overview`` (factor, phase), its part of the overview's cells."""
+    return ingest_core(read, block, _array(store, name), offset, overview)
 
 
 def overview_task(store, name, block, factor, phase):
-    """The cells of the overview of the ingested image ``name`` ("reference"
-    or "capture", on the common scale) that start in one block's core
-    (:func:`tiles.block_overview`)."""
+    """One block's part of the cells of the overview of the ingested image
+    ``name`` ("reference" or "capture"), read from the store
+    (:func:`tiles.cell_sums`): what the ingest gives when the run resumes
+    after it."""
     array = _array(store, "ingest/reference" if name == "reference" else "ingest/distorted")
-    return tiles.block_overview(_Scaled(array, store.intensity, name), block.core, factor, phase)
-
-
-class _Scaled:
-    """An ingested array read on the common intensity scale (slicing only)."""
-
-    def __init__(self, array, intensity, name):
-        self.array, self.intensity, self.name, self.shape = array, intensity, name, array.shape
-
-    def __getitem__(self, key):
-        values = self.array[key]
-        return values if self.intensity is None else self.intensity.apply(values, self.name)
+    rows, cols = block.core
+    return tiles.cell_sums(array[rows, cols], (rows.start, cols.start), factor, phase)
 
 
 def _slow_prior(store, tile, params):

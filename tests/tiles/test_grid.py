@@ -81,50 +81,49 @@ def test_blocks_are_unions_of_tiles(shape, tile, factor):
     with pytest.raises(ParameterError, match="factor"):
         grid.coarsened(0)
 
-@pytest.mark.parametrize("factor,phase", [(4, 0), (4, 2), (3, 1)])
+@pytest.mark.parametrize("factor,phase", [(4, 0), (4, 2), (3, 1), (8, 7), (1, 0)])
 def test_overview_by_blocks_equals_the_whole(factor, phase):
-    """The overview assembled from blocks equals the overview of the whole
-    array, also where cells straddle block edges (64-px blocks, cells of 3 or
-    4 px at several phases)."""
-    from rsmb.tiles import block_overview, overview_cells
+    """The overview assembled from the cell sums of blocks equals the cells'
+    sums, least and largest values over the whole array, also where cells
+    straddle block edges (64-px blocks, cells of 1 to 8 px at several
+    phases; rows and columns before the first cell belong to none), and a
+    no-data pixel makes its cell's sum NaN."""
+    from rsmb.tiles import cell_sums, overview_from_sums
 
     array = np.random.default_rng(0).random((250, 190)).astype(np.float32)
-    (r, c), whole = overview_cells(array, (0, 0), factor, phase)
-    assert (r, c) == (0, 0) and whole.shape == ((250 - phase) // factor, (190 - phase) // factor)
-    out = np.full(whole.shape, np.nan, np.float32)
-    for r0 in range(0, 250, 64):
-        for c0 in range(0, 190, 64):
-            (row, col), cells = block_overview(array, (slice(r0, min(r0 + 64, 250)), slice(c0, min(c0 + 64, 190))),
-                                               factor, phase)
-            out[row:row + cells.shape[0], col:col + cells.shape[1]] = cells
-    np.testing.assert_allclose(out, whole, rtol=1e-6)
+    array[9, 11] = np.nan
+    blocks = [cell_sums(array[r0:r0 + 64, c0:c0 + 64], (r0, c0), factor, phase)
+              for r0 in range(0, 250, 64) for c0 in range(0, 190, 64)]
+    sums, lows, highs = overview_from_sums(blocks, array.shape, factor, phase)
+    n = ((250 - phase) // factor, (190 - phase) // factor)
+    cells = array[phase:phase + n[0] * factor, phase:phase + n[1] * factor].reshape(n[0], factor, n[1], factor)
+    assert sums.shape == lows.shape == highs.shape == n
+    np.testing.assert_allclose(sums, cells.sum(axis=(1, 3), dtype=np.float64), rtol=1e-12)
+    valid = np.isfinite(sums)
+    assert (~valid).sum() == (9 >= phase and 11 >= phase and 9 < phase + n[0] * factor)
+    np.testing.assert_array_equal(lows[valid], cells.min(axis=(1, 3))[valid])
+    np.testing.assert_array_equal(highs[valid], cells.max(axis=(1, 3))[valid])
 
 
-@pytest.mark.parametrize("factor, phase, beyond", [(4, 0, (0, 0)), (8, 0, (0, 0)), (4, 2, (2, 2)), (3, 1, (0, 1))])
-def test_block_overview_reads_through_its_last_cell_only(factor, phase, beyond):
-    """A block's overview reads its rows and columns through the end of the
-    last cell starting in it: nothing beyond the block when the cells end on
-    its edges (no neighbouring chunk touched), else the straddling cells'
-    pixels; its cells are those of the whole array's overview."""
-    from rsmb.tiles import block_overview, overview_cells
+def test_cell_means_are_the_common_scale_of_the_cells():
+    """The overview's cell means on the common scale equal the mean of the
+    scaled pixels to float32 rounding, are NaN where a cell holds a clipped
+    or no-data pixel, and cells of one pixel are :meth:`apply`'s values bit
+    for bit."""
+    from rsmb.ops import IntensityScale
+    from rsmb.tiles import cell_sums, overview_from_sums
 
-    class Recorded:
-        def __init__(self, array):
-            self.array, self.shape, self.keys = array, array.shape, []
-
-        def __getitem__(self, key):
-            self.keys.append(key)
-            return self.array[key]
-
-    array = np.random.default_rng(1).random((128, 128)).astype(np.float32)
-    recorded = Recorded(array)
-    (row, col), cells = block_overview(recorded, (slice(32, 64), slice(64, 96)), factor, phase)
-    (rows, cols), = recorded.keys
-    # (3, 1): the last cells starting in rows 32-63 and columns 64-95 start at 61 (ends 64) and 94 (ends 97)
-    assert (rows.start, rows.stop, cols.start, cols.stop) == (32, 64 + beyond[0], 64, 96 + beyond[1])
-    _, whole = overview_cells(array, (0, 0), factor, phase)
-    np.testing.assert_array_equal(cells, whole[row:row + cells.shape[0], col:col + cells.shape[1]])
-    assert row * factor + phase >= 32 and (row + cells.shape[0] - 1) * factor + phase < 64
+    rng = np.random.default_rng(2)
+    array = np.round(rng.random((64, 64)) * 255).astype(np.float32) / 255  # 8-bit values, some at 0 and 1
+    array[3, 3] = np.nan
+    scale = IntensityScale(0.02, 0.97, (0.0, 1.0), (0.0, 1.0))
+    scaled = scale.apply(array, "capture")
+    one = scale.cell_means(*overview_from_sums([cell_sums(array, (0, 0), 1)], array.shape, 1), 1, "capture")
+    np.testing.assert_array_equal(one, scaled)
+    means = scale.cell_means(*overview_from_sums([cell_sums(array, (0, 0), 4)], array.shape, 4), 16, "capture")
+    expected = scaled.reshape(16, 4, 16, 4).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+    assert np.array_equal(np.isnan(means), np.isnan(expected)) and np.isnan(means).sum() > 1
+    np.testing.assert_allclose(means, expected, rtol=2e-7)
 
 
 def _old_components(edges, total):

@@ -47,6 +47,24 @@ def test_tiles_register_on_the_slow_path_found_on_the_overview(tmp_path, yaw_cap
     assert f >= 0.9 and f > f_without + 0.1, (f, f_without)
 
 
+def test_a_resumed_run_makes_the_overview_the_ingest_made(tmp_path, yaw_capture, monkeypatch):
+    """The ingest tasks make the overviews' cells from what they write; a run
+    resumed after the ingest makes them again from the store, with the same
+    bits: the same slow part, the same store."""
+    from rsmb.pipeline.detection import _detect
+
+    d, references = yaw_capture
+    config = DetectConfig(tile=256, changes=ops.ChangeParams(layers=False))
+    detect(references, d / "capture.tif", tmp_path / "ingested.zarr", config=config)
+    ingest = _detect._ingest
+    monkeypatch.setattr(_detect, "_ingest", lambda *args: (ingest(*args)[0], None))  # as after a resume
+    detect(references, d / "capture.tif", tmp_path / "read.zarr", config=config)
+    a, b = read_store(tmp_path / "ingested.zarr")[0], read_store(tmp_path / "read.zarr")[0]
+    assert np.abs(a["trajectory"][:, 3:]).max() > 0.5  # a slow part was found
+    for name in ("trajectory", "registered", "change_mask"):
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
 def test_an_in_plane_capture_has_no_slow_path(tmp_path, geotiff_pair_files):
     d, ref, dist = geotiff_pair_files
     detect(ref, dist, tmp_path / "o.zarr", config=DetectConfig(tile=128))
