@@ -78,14 +78,8 @@ class IntensityScale:
     def apply(self, values, image):
         """``values`` (float32, NaN for no-data) of ``image`` ("reference" or
         "capture") on the common scale, NaN where clipped or no-data."""
-        low, high = self.reference_clip if image == "reference" else self.capture_clip
         values = np.asarray(values, dtype=np.float32)
-        out = values * np.float32(SPAN / (self.hi - self.lo))
-        if low is not None:
-            out[values <= np.float32(low)] = np.nan
-        if high is not None:
-            out[values >= np.float32(high)] = np.nan
-        return out
+        return self._without_clipped(values * np.float32(SPAN / (self.hi - self.lo)), values, values, image)
 
     def cell_means(self, sums, lows, highs, count, image):
         """The means of cells of ``count`` ingested values of ``image`` each,
@@ -93,13 +87,17 @@ class IntensityScale:
         least and largest values, on the common scale: float32, NaN where a
         cell holds no-data or a clipped value (see :meth:`apply`).  Cells of
         one value are :meth:`apply`'s values, bit for bit."""
+        out = np.asarray(sums, np.float64) / count * np.float64(np.float32(SPAN / (self.hi - self.lo)))
+        return self._without_clipped(out.astype(np.float32), np.asarray(lows), np.asarray(highs), image)
+
+    def _without_clipped(self, out, lows, highs, image):
+        """``out`` with NaN where ``lows`` reach ``image``'s floor or ``highs``
+        its saturation (the clip rule of :meth:`apply`)."""
         low, high = self.reference_clip if image == "reference" else self.capture_clip
-        out = (np.asarray(sums, np.float64) / count * np.float64(np.float32(SPAN / (self.hi - self.lo))))
-        out = out.astype(np.float32)
         if low is not None:
-            out[np.asarray(lows) <= np.float32(low)] = np.nan
+            out[lows <= np.float32(low)] = np.nan
         if high is not None:
-            out[np.asarray(highs) >= np.float32(high)] = np.nan
+            out[highs >= np.float32(high)] = np.nan
         return out
 
     def scaled(self, value):

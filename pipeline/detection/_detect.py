@@ -334,7 +334,8 @@ class _Beside:
     :meth:`result` waits for it (starting it if need be) and raises what it
     raised.  For work that needs only the inputs, such as the previews (read
     and reduced on one thread): made beside the stages, it takes a core
-    while a stage leaves one idle (the slow part's one task) instead of adding to the run's serial end.  A daemon: a run that
+    while a stage leaves one idle (the slow part's one task) instead of
+    adding to the run's serial end.  A daemon: a run that
     fails does not wait for it."""
 
     def __init__(self, func, *args):
