@@ -58,14 +58,33 @@ _threads_runs = 0  # runs of Runner.map under way in this process
 _threads_saved = None  # OpenCV's thread count and the BLAS limiter (threadpoolctl) set by the first of them
 
 
+_blas_found = None  # (len(sys.modules) when found, the threadpoolctl controller of the libraries then loaded)
+
+
 def _one_blas_thread():
     """Every BLAS library loaded in this process (numpy's, scipy's, OpenCV's
     OpenBLAS: threadpoolctl finds them) at one thread; returns the
     threadpoolctl limiter whose ``restore_original_limits()`` undoes it (call
-    it through :func:`_as_blas_controller`)."""
-    from threadpoolctl import threadpool_limits
+    it through :func:`_as_blas_controller`).
 
-    return _as_blas_controller(lambda: threadpool_limits(limits=1, user_api="blas"))
+    Finding the libraries walks every shared object of the process in Python
+    (10-30 ms with the interpreter lock shared, at the start of every map,
+    while the workers wait), so they are found again only when a module was
+    imported since the last search: a library comes with the import of the
+    extension module that links it."""
+    return _as_blas_controller(lambda: _blas_controller().limit(limits=1, user_api="blas"))
+
+
+def _blas_controller():
+    """The threadpoolctl controller of the libraries loaded now (found again
+    when ``sys.modules`` has grown; call under :data:`_blas_lock`)."""
+    global _blas_found
+    from threadpoolctl import ThreadpoolController
+
+    if _blas_found is None or _blas_found[0] != len(sys.modules):
+        modules = len(sys.modules)
+        _blas_found = modules, ThreadpoolController()
+    return _blas_found[1]
 
 
 def _as_blas_controller(action):

@@ -101,6 +101,23 @@ def test_a_run_in_the_calling_process_runs_one_blas_thread_and_restores_them():
     assert {path: n for path, n in _blas_threads().items() if path in before} == before
 
 
+def test_the_blas_libraries_are_found_again_only_after_an_import(monkeypatch):
+    import sys
+    import types
+
+    _scheduler._as_blas_controller(_scheduler._one_blas_thread().restore_original_limits)
+    found = _scheduler._blas_found[1]
+    _scheduler._as_blas_controller(_scheduler._one_blas_thread().restore_original_limits)
+    assert _scheduler._blas_found[1] is found  # nothing imported since: the same search
+    monkeypatch.setitem(sys.modules, "rsmb_test_new_module", types.ModuleType("rsmb_test_new_module"))
+    limiter = _scheduler._one_blas_thread()  # a module imported: its libraries may be new
+    try:
+        assert _scheduler._blas_found[1] is not found
+        assert set(_blas_threads().values()) <= {1}
+    finally:
+        _scheduler._as_blas_controller(limiter.restore_original_limits)
+
+
 def _blas_threads_slowly(_):
     time.sleep(0.01)  # runs overlap
     return _blas_threads()
