@@ -56,8 +56,6 @@ _threads_lock = threading.Lock()
 _blas_lock = threading.Lock()  # one change of BLAS thread counts at a time (tasks of a worker process)
 _threads_runs = 0  # runs of Runner.map under way in this process
 _threads_saved = None  # OpenCV's thread count and the BLAS limiter (threadpoolctl) set by the first of them
-
-
 _blas_found = None  # (len(sys.modules) when found, the threadpoolctl controller of the libraries then loaded)
 
 
@@ -68,10 +66,9 @@ def _one_blas_thread():
     it through :func:`_as_blas_controller`).
 
     Finding the libraries walks every shared object of the process in Python
-    (10-30 ms with the interpreter lock shared, at the start of every map,
-    while the workers wait), so they are found again only when a module was
-    imported since the last search: a library comes with the import of the
-    extension module that links it."""
+    (at the start of every map, while the workers wait), so they are found
+    again only when a module was imported since the last search: a library
+    comes with the import of the extension module that links it."""
     return _as_blas_controller(lambda: _blas_controller().limit(limits=1, user_api="blas"))
 
 
@@ -82,8 +79,7 @@ def _blas_controller():
     from threadpoolctl import ThreadpoolController
 
     if _blas_found is None or _blas_found[0] != len(sys.modules):
-        modules = len(sys.modules)
-        _blas_found = modules, ThreadpoolController()
+        _blas_found = len(sys.modules), ThreadpoolController()  # the count before the search's own imports
     return _blas_found[1]
 
 
